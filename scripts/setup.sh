@@ -10,6 +10,11 @@ python="${PYTHON:-python3}"
 
 die() { echo "setup: $*" >&2; exit 1; }
 
+# Serialise concurrent runs (parallel test sessions, editors) so two colcon builds never share build/ at once.
+mkdir -p "$ws"
+exec 9>"$ws/.setup.lock"
+flock 9
+
 # --- 1. Tools the build needs: say clearly which one is missing, once. --------------------------------------------
 missing=()
 command -v "$python" >/dev/null 2>&1 || missing+=("python3 (3.11)")
