@@ -1,0 +1,149 @@
+"""Recorder node: writes every (or every selected) topic into a rosbag2-compatible MCAP bag directory.
+
+    ./mm run mm_bringup recorder --ros-args -p output:=results/my_bag -p overwrite:=true
+    ./mm bag record -o results/my_bag -a                  # the same through the bag tool
+    ros2 run mm_bringup recorder --ros-args -p output:=my_bag -p topics:="['/wheeled/.*']"
+
+Subscribes with raw serialized messages (no deserialize/serialize round trip), one subscription per topic with the
+reliability/durability adapted to the publishers' offered QoS like rosbag2 (reliable only if every publisher is
+reliable, transient-local only if every publisher is), discovers topics that appear later, and hands messages to a
+writer thread so disk I/O never blocks DDS callbacks. SIGINT/SIGTERM finalise the MCAP summary and metadata.yaml.
+"""
+from __future__ import annotations
+
+import importlib
+import queue
+import re
+import threading
+import time
+from pathlib import Path
+from typing import Dict, Optional
+
+from mm_common.node_utils import declare, run_node
+from mm_common.rosbag import BagError, BagWriter, QosSummary, adapt_offered_qos
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+_STOP = object()
+
+
+def message_class(type_name: str):
+    """The Python class of `pkg/msg/Type` (rosidl_runtime_py is not available in the pip install)."""
+    pkg, kind, name = type_name.split('/')
+    return getattr(importlib.import_module(f'{pkg}.{kind}'), name)
+
+
+class Recorder(Node):
+    def __init__(self):
+        super().__init__('recorder')
+        output = declare(self, 'output', '', 'Bag directory to create (default: rosbag2_<date>_<time>)',
+                         read_only=True)
+        overwrite = declare(self, 'overwrite', False, 'Replace an existing bag directory', read_only=True)
+        self.include = [re.compile(p) for p in declare(
+            self, 'topics', [''], 'Regexes of topics to record (full match); empty string = all topics',
+            read_only=True) if p]
+        self.exclude = [re.compile(p) for p in declare(
+            self, 'exclude', ['/rosout', '/parameter_events'], 'Regexes of topics never recorded (full match)',
+            read_only=True) if p]
+        self.discovery_period = declare(self, 'discovery_period', 0.1, 'Seconds between topic discovery polls',
+                                        min_value=0.01, max_value=60.0)
+        compression = declare(self, 'compression', 'none', 'MCAP chunk compression: none, zstd or lz4',
+                              read_only=True, additional_constraints='one of none, zstd, lz4')
+        max_bag_size = declare(self, 'max_bag_size', 0, 'Split into a new .mcap file past this many bytes (0 = never)',
+                               min_value=0, max_value=2**62, read_only=True)
+        self.queue_depth = declare(self, 'queue_depth', 1000, 'Subscription history depth per topic',
+                                   min_value=1, max_value=100000, read_only=True)
+        if not output:
+            output = time.strftime('rosbag2_%Y_%m_%d-%H_%M_%S')
+        self.writer = BagWriter(Path(output), compression=compression, max_bag_size=max_bag_size,
+                                overwrite=overwrite)
+        self.add_on_set_parameters_callback(lambda params: SetParametersResult(successful=True))
+        self._queue: 'queue.Queue' = queue.Queue()
+        self._failed_topics: Dict[str, str] = {}
+        self._recorded_subscriptions: Dict[str, object] = {}
+        self.received = 0
+        self._write_error: Optional[Exception] = None
+        self._writer_thread = threading.Thread(target=self._write_loop, name='bag_writer', daemon=True)
+        self._writer_thread.start()
+        self._closed = False
+        self.create_timer(self.discovery_period, self._discover)
+        self._discover()
+        self.get_logger().info(f'recording into {self.writer.directory}')
+
+    # --- discovery ------------------------------------------------------------------------------------------
+    def _selected(self, topic: str) -> bool:
+        if any(p.fullmatch(topic) for p in self.exclude):
+            return False
+        return not self.include or any(p.fullmatch(topic) for p in self.include)
+
+    def _discover(self) -> None:
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self._recorded_subscriptions or topic in self._failed_topics or not self._selected(topic):
+                continue
+            publishers = self.get_publishers_info_by_topic(topic)
+            if not publishers:
+                continue  # only subscribers so far: wait until someone offers data
+            type_name = types[0]
+            offered = [QosSummary(int(p.qos_profile.reliability), int(p.qos_profile.durability),
+                                  int(p.qos_profile.history), int(p.qos_profile.depth),
+                                  int(p.qos_profile.liveliness)) for p in publishers]
+            try:
+                msg_type = message_class(type_name)
+                self.writer.add_topic(topic, type_name, offered, str(publishers[0].topic_type_hash))
+            except (ImportError, AttributeError, ValueError, BagError) as exc:
+                self._failed_topics[topic] = str(exc)
+                self.get_logger().error(f'cannot record {topic} ({type_name}): {exc}')
+                continue
+            reliability, durability = adapt_offered_qos(offered)
+            qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.queue_depth,
+                             reliability=ReliabilityPolicy(reliability), durability=DurabilityPolicy(durability))
+            self._recorded_subscriptions[topic] = self.create_subscription(
+                msg_type, topic, lambda data, info, t=topic: self._on_message(t, data, info), qos, raw=True)
+            self.get_logger().info(f'subscribed to {topic} [{type_name}] '
+                                   f"({'reliable' if reliability == 1 else 'best effort'}, "
+                                   f"{'transient local' if durability == 1 else 'volatile'})")
+
+    # --- data path ------------------------------------------------------------------------------------------
+    def _on_message(self, topic: str, data: bytes, info: dict) -> None:
+        self.received += 1
+        received = info.get('received_timestamp') or time.time_ns()
+        self._queue.put((topic, data, received, info.get('source_timestamp') or received))
+
+    def _write_loop(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is _STOP:
+                return
+            try:
+                self.writer.write(*item)
+            except Exception as exc:  # keep draining so the callbacks never block; report at close
+                self._write_error = exc
+
+    def close(self) -> dict:
+        """Stop subscriptions, drain the queue, finalise the MCAP file(s) and metadata.yaml."""
+        if self._closed:
+            return self.writer.metadata()
+        self._closed = True
+        for sub in self._recorded_subscriptions.values():
+            self.destroy_subscription(sub)
+        self._queue.put(_STOP)
+        self._writer_thread.join()
+        meta = self.writer.close()
+        if self._write_error is not None:
+            self.get_logger().error(f'writing failed for some messages: {self._write_error}')
+        self.get_logger().info(f"bag closed: {meta['message_count']} messages on "
+                               f"{len(meta['topics_with_message_count'])} topics in {self.writer.directory}")
+        return meta
+
+    def destroy_node(self):
+        self.close()
+        return super().destroy_node()
+
+
+def main(args=None):
+    run_node(Recorder, args)
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,301 @@
+"""Wheeled-robot simulator node: a differential-drive robot with five proximity sensors near an infinite wall.
+
+    ./mm run mm_sim wheeled_sim --ros-args --params-file ros2_ws/src/mm_sim/config/wheeled_sim.yaml
+    ros2 run mm_sim wheeled_sim --ros-args -p lockstep:=false -p real_time_factor:=1.0      # real install
+
+Publishes, per simulation step and in this order, all with the stamp of that step:
+  /clock, the five `wheeled/range/<sensor>` (sensor_msgs/Range), `wheeled/bumper`, `wheeled/ground_truth/odom`
+  and, every `marker_period` steps, `wheeled/markers`.
+Consumes `wheeled/wheel_velocity_controller/commands` (std_msgs/Float64MultiArray, [left, right] wheel rad/s).
+
+Lockstep (default): the readings of step k are out; one valid command advances exactly one step of `dt`; until the
+first command arrives the current step is re-published every `republish_period` wall seconds so late joiners can
+start the loop. Free-running: a wall timer steps at `real_time_factor` with the latest command.
+"""
+from __future__ import annotations
+
+import math
+from typing import List
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Point
+from mm_common.node_utils import declare, reject_non_finite, run_node
+from mm_msgs.srv import ResetPose
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Range
+from std_msgs.msg import Bool, Float64MultiArray
+from visualization_msgs.msg import Marker, MarkerArray
+
+from mm_sim.wheeled_model import ProximitySensor, WheeledRobot, default_sensors
+
+SENSOR_NAMES = ('front_left', 'front_center', 'front_right', 'side_front', 'side_rear')
+
+# Every topic of the lockstep loop is RELIABLE: the controller waits for each step's readings and the recorder must
+# not lose a message; depth 50 absorbs bursts when a subscriber is briefly slow.
+LOOP_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+
+
+def _stamp(nanoseconds: int) -> Time:
+    return Time(sec=nanoseconds // 1_000_000_000, nanosec=nanoseconds % 1_000_000_000)
+
+
+class WheeledSim(Node):
+    def __init__(self):
+        super().__init__('wheeled_sim')
+        defaults = {s.name: s for s in default_sensors()}
+        self.dt = declare(self, 'dt', 0.05, 'Simulation step [s]', min_value=1e-4, max_value=1.0)
+        self.lockstep = declare(self, 'lockstep', True, 'Advance one step per received command (deterministic)')
+        self.real_time_factor = declare(self, 'real_time_factor', 1.0,
+                                        'Free-running speed relative to wall time', min_value=0.01, max_value=1000.0)
+        self.republish_period = declare(self, 'republish_period', 0.5,
+                                        'Lockstep: wall seconds between re-publications before the first command',
+                                        min_value=0.01, max_value=60.0)
+        self.command_timeout = declare(self, 'command_timeout', 0.5,
+                                       'Free-running: sim seconds after which a stale command counts as zero',
+                                       min_value=0.0, max_value=60.0)
+        self.max_wheel_speed = declare(self, 'max_wheel_speed', 30.0,
+                                       'Commands with |omega| above this [rad/s] are rejected',
+                                       min_value=0.0, max_value=1e4)
+        self.marker_period = declare(self, 'marker_period', 10, 'Publish markers every N steps', min_value=1,
+                                     max_value=100000)
+        initial_pose = declare(self, 'initial_pose', [0.0, 1.0, -math.pi / 2],
+                               'Initial pose [x, y, theta] in the world frame (wall: y = 0)')
+        wheel_radius = declare(self, 'wheel_radius', 0.02, 'Wheel radius [m]', min_value=1e-4, max_value=1.0,
+                               read_only=True)
+        wheel_separation = declare(self, 'wheel_separation', 0.04, 'Distance between the wheels [m]',
+                                   min_value=1e-4, max_value=2.0, read_only=True)
+        body_radius = declare(self, 'body_radius', 0.03, 'Body radius used for wall contact [m]',
+                              min_value=0.0, max_value=1.0, read_only=True)
+        noise_std = declare(self, 'noise_std', 0.0, 'Gaussian reading noise [m] (0 = off)', min_value=0.0,
+                            max_value=1.0)
+        dropout = declare(self, 'dropout', 0.0, 'Probability that a reading is lost (published as NaN)',
+                          min_value=0.0, max_value=1.0)
+        seed = declare(self, 'random_seed', 0, 'Seed of the noise and dropout generator', min_value=0,
+                       max_value=2**31 - 1)
+        sensors: List[ProximitySensor] = []
+        for name in SENSOR_NAMES:
+            d = defaults[name]
+            mount = declare(self, f'sensors.{name}.mount', [d.x, d.y, math.degrees(d.yaw)],
+                            f'{name}: mount [x, y, yaw_deg] in base_link', read_only=True)
+            rng = declare(self, f'sensors.{name}.range', [d.min_range, d.max_range],
+                          f'{name}: [min_range, max_range] [m]', read_only=True)
+            fov = declare(self, f'sensors.{name}.field_of_view', d.field_of_view, f'{name}: beam width [rad]',
+                          min_value=0.0, max_value=math.pi, read_only=True)
+            inc = declare(self, f'sensors.{name}.max_incidence_deg', math.degrees(d.max_incidence),
+                          f'{name}: no return beyond this angle of incidence [deg]', min_value=0.0,
+                          max_value=90.0, read_only=True)
+            if len(mount) != 3 or len(rng) != 2 or not 0.0 <= rng[0] < rng[1]:
+                raise ValueError(f'sensor {name}: mount needs [x, y, yaw_deg] and range [min < max]')
+            sensors.append(ProximitySensor(name, mount[0], mount[1], math.radians(mount[2]), rng[0], rng[1], fov,
+                                           math.radians(inc)))
+        if len(initial_pose) != 3 or not all(math.isfinite(v) for v in initial_pose):
+            raise ValueError('initial_pose must be three finite numbers [x, y, theta]')
+        self.robot = WheeledRobot(wheel_radius, wheel_separation, body_radius, sensors, noise_std, dropout, seed)
+        self.pose = tuple(float(v) for v in initial_pose)
+        self.pose = (self.pose[0], max(self.pose[1], body_radius), self.pose[2])
+        self.step_index = 0
+        self.bumped = self.robot.touching(self.pose)
+        self.velocity = (0.0, 0.0)
+        self.command = np.zeros(2)
+        self.command_time_ns = None
+        self.commands_received = 0
+        self.commands_rejected = 0
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self.clock_pub = self.create_publisher(Clock, '/clock', LOOP_QOS)
+        self.range_pubs = [self.create_publisher(Range, f'wheeled/range/{s.name}', LOOP_QOS) for s in sensors]
+        self.bumper_pub = self.create_publisher(Bool, 'wheeled/bumper', LOOP_QOS)
+        self.odom_pub = self.create_publisher(Odometry, 'wheeled/ground_truth/odom', LOOP_QOS)
+        self.marker_pub = self.create_publisher(MarkerArray, 'wheeled/markers', LOOP_QOS)
+        self.create_subscription(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands',
+                                 self._on_command, LOOP_QOS)
+        self.create_service(ResetPose, 'wheeled/reset', self._on_reset)
+
+        # Messages are built once and only their changing fields are written each step (lean hot path).
+        self.range_msgs = []
+        for s in sensors:
+            m = Range()
+            m.header.frame_id = f'{s.name}_link'
+            m.radiation_type = Range.INFRARED
+            m.field_of_view = float(s.field_of_view)
+            m.min_range = float(s.min_range)
+            m.max_range = float(s.max_range)
+            self.range_msgs.append(m)
+        self.odom_msg = Odometry()
+        self.odom_msg.header.frame_id = 'world'
+        self.odom_msg.child_frame_id = 'base_link'
+        self.clock_msg = Clock()
+        self.bool_msg = Bool()
+
+        if self.lockstep:
+            self.republish_timer = self.create_timer(self.republish_period, self._republish)
+        else:
+            self.republish_timer = None
+            self.create_timer(self.dt / self.real_time_factor, self._free_run_tick)
+        self._publish_step()
+        self.get_logger().info(
+            f"wheeled_sim ready: {'lockstep' if self.lockstep else 'free-running'}, dt={self.dt}s, "
+            f'pose={self.pose}')
+
+    # --- parameters -------------------------------------------------------------------------------------------
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        result = reject_non_finite(params)
+        if not result.successful:
+            return result
+        for p in params:
+            if p.name in ('dt', 'lockstep', 'real_time_factor'):
+                return SetParametersResult(successful=False, reason=f'{p.name} can only be set at start-up')
+            if p.name == 'noise_std':
+                self.robot.noise_std = float(p.value)
+            elif p.name == 'dropout':
+                self.robot.dropout = float(p.value)
+            elif p.name == 'max_wheel_speed':
+                self.max_wheel_speed = float(p.value)
+            elif p.name == 'command_timeout':
+                self.command_timeout = float(p.value)
+        return SetParametersResult(successful=True)
+
+    # --- inputs -----------------------------------------------------------------------------------------------
+    def _validate(self, data) -> str:
+        if len(data) != 2:
+            return f'expected 2 wheel speeds [left, right], got {len(data)}'
+        if not all(math.isfinite(v) for v in data):
+            return f'non-finite wheel speed {list(data)}'
+        if max(abs(v) for v in data) > self.max_wheel_speed:
+            return f'wheel speed {list(data)} beyond max_wheel_speed={self.max_wheel_speed}'
+        return ''
+
+    def _on_command(self, msg: Float64MultiArray) -> None:
+        problem = self._validate(msg.data)
+        if problem:
+            self.commands_rejected += 1
+            self.get_logger().warn(f'rejected command ({self.commands_rejected} so far): {problem}',
+                                   throttle_duration_sec=1.0)
+            return
+        self.commands_received += 1
+        self.command = np.asarray(msg.data, dtype=float)
+        self.command_time_ns = self.sim_time_ns
+        if self.lockstep:
+            if self.republish_timer is not None:
+                self.republish_timer.cancel()
+                self.destroy_timer(self.republish_timer)
+                self.republish_timer = None
+            self._advance(self.command)
+
+    def _on_reset(self, request: ResetPose.Request, response: ResetPose.Response) -> ResetPose.Response:
+        pose = (request.x, request.y, request.theta)
+        if not all(math.isfinite(v) for v in pose):
+            response.success, response.message = False, 'pose must be finite'
+            return response
+        if request.y < self.robot.body_radius:
+            response.success = False
+            response.message = f'y={request.y} puts the body ({self.robot.body_radius} m) into the wall (y=0)'
+            return response
+        self.pose = (request.x, request.y, math.atan2(math.sin(request.theta), math.cos(request.theta)))
+        self.velocity = (0.0, 0.0)
+        self.command = np.zeros(2)
+        self.step_index += 1          # a reset is a new step: sim time stays monotonic for every consumer
+        self.bumped = self.robot.touching(self.pose)
+        self._publish_step(markers=True)
+        response.success, response.message = True, f'reset to {self.pose} at step {self.step_index}'
+        return response
+
+    # --- stepping ---------------------------------------------------------------------------------------------
+    @property
+    def sim_time_ns(self) -> int:
+        return int(round(self.step_index * self.dt * 1e9))
+
+    def _advance(self, wheel_speeds) -> None:
+        self.pose, self.bumped = self.robot.step(self.pose, wheel_speeds, self.dt)
+        self.velocity = self.robot.body_velocity(wheel_speeds)
+        self.step_index += 1
+        self._publish_step()
+
+    def _free_run_tick(self) -> None:
+        stale = (self.command_time_ns is None
+                 or self.sim_time_ns - self.command_time_ns > self.command_timeout * 1e9)
+        self._advance(np.zeros(2) if stale else self.command)
+
+    def _republish(self) -> None:
+        self._publish_step(markers=True)
+
+    def _publish_step(self, markers: bool = False) -> None:
+        stamp = _stamp(self.sim_time_ns)
+        self.clock_msg.clock = stamp
+        self.clock_pub.publish(self.clock_msg)
+        readings = self.robot.read(self.pose)
+        for pub, msg, value in zip(self.range_pubs, self.range_msgs, readings):
+            msg.header.stamp = stamp
+            msg.range = float(value)
+            pub.publish(msg)
+        self.bool_msg.data = bool(self.bumped)
+        self.bumper_pub.publish(self.bool_msg)
+        x, y, theta = self.pose
+        o = self.odom_msg
+        o.header.stamp = stamp
+        o.pose.pose.position.x, o.pose.pose.position.y = float(x), float(y)
+        o.pose.pose.orientation.z, o.pose.pose.orientation.w = math.sin(theta / 2), math.cos(theta / 2)
+        o.twist.twist.linear.x, o.twist.twist.angular.z = float(self.velocity[0]), float(self.velocity[1])
+        self.odom_pub.publish(o)
+        if markers or self.step_index % self.marker_period == 0:
+            self.marker_pub.publish(self._markers(stamp, readings))
+
+    def _markers(self, stamp: Time, readings) -> MarkerArray:
+        """Wall, robot body with heading, and the five beams (green: wall in range, grey: nothing seen)."""
+        x, y, theta = self.pose
+        c, s = math.cos(theta), math.sin(theta)
+        out = MarkerArray()
+
+        def marker(mid: int, kind: int, ns: str) -> Marker:
+            m = Marker()
+            m.header.frame_id = 'world'
+            m.header.stamp = stamp
+            m.ns, m.id, m.type, m.action = ns, mid, kind, Marker.ADD
+            m.pose.orientation.w = 1.0
+            m.color.a = 1.0
+            return m
+
+        wall = marker(0, Marker.LINE_STRIP, 'wall')
+        wall.scale.x = 0.01
+        wall.color.r = wall.color.g = wall.color.b = 0.2
+        wall.points = [Point(x=x - 3.0), Point(x=x + 3.0)]
+        body = marker(1, Marker.CYLINDER, 'robot')
+        body.pose.position.x, body.pose.position.y = float(x), float(y)
+        body.scale.x = body.scale.y = 2 * self.robot.body_radius
+        body.scale.z = 0.02
+        body.color.b, body.color.g = 0.8, 0.4
+        heading = marker(2, Marker.ARROW, 'robot')
+        heading.scale.x, heading.scale.y, heading.scale.z = 0.005, 0.01, 0.01
+        heading.color.r = 1.0
+        heading.points = [Point(x=float(x), y=float(y)),
+                          Point(x=float(x + 2 * self.robot.body_radius * c), y=float(y + 2 * self.robot.body_radius * s))]
+        out.markers = [wall, body, heading]
+        for i, (sensor, value) in enumerate(zip(self.robot.sensors, readings)):
+            sx, sy = x + c * sensor.x - s * sensor.y, y + s * sensor.x + c * sensor.y
+            length = float(value) if math.isfinite(value) else sensor.max_range
+            beam = marker(10 + i, Marker.LINE_LIST, 'beams')
+            beam.scale.x = 0.004
+            if math.isfinite(value):
+                beam.color.g = 0.8
+            else:
+                beam.color.r = beam.color.g = beam.color.b = 0.6
+                beam.color.a = 0.5
+            yaw = theta + sensor.yaw
+            beam.points = [Point(x=float(sx), y=float(sy)),
+                           Point(x=float(sx + length * math.cos(yaw)), y=float(sy + length * math.sin(yaw)))]
+            out.markers.append(beam)
+        return out
+
+
+def main(args=None):
+    run_node(WheeledSim, args)
+
+
+if __name__ == '__main__':
+    main()
