@@ -25,8 +25,8 @@ from mm_bringup.recorder_node import message_class
 
 
 class Player(Node):
-    def __init__(self):
-        super().__init__('player')
+    def __init__(self, **node_kwargs):
+        super().__init__('player', **node_kwargs)
         self.bag = declare(self, 'bag', '', 'Bag directory to play', read_only=True)
         self.rate = declare(self, 'rate', 1.0, 'Playback speed factor; 0 = as fast as possible (order kept)',
                             min_value=0.0, max_value=1000.0, read_only=True)

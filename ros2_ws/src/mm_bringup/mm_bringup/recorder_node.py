@@ -14,15 +14,19 @@ from __future__ import annotations
 import importlib
 import queue
 import re
+import signal
 import threading
 import time
 from pathlib import Path
 from typing import Dict, Optional
 
-from mm_common.node_utils import declare, run_node
+import rclpy
+from mm_common.node_utils import declare
 from mm_common.rosbag import BagError, BagWriter, QosSummary, adapt_offered_qos
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 _STOP = object()
@@ -35,8 +39,8 @@ def message_class(type_name: str):
 
 
 class Recorder(Node):
-    def __init__(self):
-        super().__init__('recorder')
+    def __init__(self, **node_kwargs):
+        super().__init__('recorder', **node_kwargs)
         output = declare(self, 'output', '', 'Bag directory to create (default: rosbag2_<date>_<time>)',
                          read_only=True)
         overwrite = declare(self, 'overwrite', False, 'Replace an existing bag directory', read_only=True)
@@ -52,6 +56,9 @@ class Recorder(Node):
                               read_only=True, additional_constraints='one of none, zstd, lz4')
         max_bag_size = declare(self, 'max_bag_size', 0, 'Split into a new .mcap file past this many bytes (0 = never)',
                                min_value=0, max_value=2**62, read_only=True)
+        self.drain_period = declare(self, 'drain_period', 0.3,
+                                    'Seconds spent taking already-delivered messages after SIGINT/SIGTERM',
+                                    min_value=0.0, max_value=10.0)
         self.queue_depth = declare(self, 'queue_depth', 1000, 'Subscription history depth per topic',
                                    min_value=1, max_value=100000, read_only=True)
         if not output:
@@ -142,7 +149,31 @@ class Recorder(Node):
 
 
 def main(args=None):
-    run_node(Recorder, args)
+    """Own SIGINT/SIGTERM handling: stop spinning, take what DDS already delivered, then finalise the bag.
+
+    With rclpy's default handlers the context is shut down inside the signal handler and messages still queued in
+    the subscriptions would be lost; rosbag2 likewise flushes before it exits.
+    """
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    node = None
+    try:
+        node = Recorder()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.05)
+        drain_until = time.monotonic() + node.drain_period
+        while time.monotonic() < drain_until:
+            executor.spin_once(timeout_sec=0.01)
+    except ExternalShutdownException:
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
 
 
 if __name__ == '__main__':

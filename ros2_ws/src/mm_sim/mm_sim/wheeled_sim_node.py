@@ -46,8 +46,8 @@ def _stamp(nanoseconds: int) -> Time:
 
 
 class WheeledSim(Node):
-    def __init__(self):
-        super().__init__('wheeled_sim')
+    def __init__(self, **node_kwargs):
+        super().__init__('wheeled_sim', **node_kwargs)
         defaults = {s.name: s for s in default_sensors()}
         self.dt = declare(self, 'dt', 0.05, 'Simulation step [s]', min_value=1e-4, max_value=1.0)
         self.lockstep = declare(self, 'lockstep', True, 'Advance one step per received command (deterministic)')

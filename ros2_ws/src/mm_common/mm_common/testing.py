@@ -1,0 +1,50 @@
+"""In-process test harness: nodes under test run in their own rclpy Context and executor, polled with deadlines."""
+from __future__ import annotations
+
+import time
+from typing import Callable, List, Optional, Sequence
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+
+
+class RosHarness:
+    """A private Context + executor; `spin_until` polls instead of sleeping for a fixed time."""
+
+    def __init__(self, domain_id: Optional[int] = None):
+        self.context = Context()
+        kwargs = {} if domain_id is None else {'domain_id': domain_id}
+        rclpy.init(context=self.context, **kwargs)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.nodes: List[Node] = []
+
+    def add(self, node: Node) -> Node:
+        self.nodes.append(node)
+        self.executor.add_node(node)
+        return node
+
+    def node(self, name: str, parameter_overrides: Sequence = ()) -> Node:
+        return self.add(Node(name, context=self.context, parameter_overrides=list(parameter_overrides)))
+
+    def spin_until(self, predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            self.executor.spin_once(timeout_sec=0.01)
+        return predicate()
+
+    def spin_for(self, seconds: float) -> None:
+        """Process callbacks for a while: for asserting that something does NOT happen."""
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def close(self) -> None:
+        for node in self.nodes:
+            self.executor.remove_node(node)
+            node.destroy_node()
+        self.executor.shutdown()
+        rclpy.try_shutdown(context=self.context)

@@ -1,0 +1,107 @@
+"""The simulator node in-process: lockstep stepping, command rejection, reset service, bumper, markers."""
+import math
+
+import pytest
+from mm_common.testing import RosHarness
+from mm_msgs.srv import ResetPose
+from nav_msgs.msg import Odometry
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Range
+from std_msgs.msg import Bool, Float64MultiArray
+from visualization_msgs.msg import MarkerArray
+
+from mm_sim.wheeled_sim_node import SENSOR_NAMES, WheeledSim
+
+QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+
+
+@pytest.fixture
+def rig():
+    ros = RosHarness()
+    sim = ros.add(WheeledSim(context=ros.context, parameter_overrides=[
+        Parameter('republish_period', value=5.0), Parameter('initial_pose', value=[0.0, 0.5, -math.pi / 2])]))
+    client = ros.node('sim_test_client')
+    seen = {'odom': [], 'bumper': [], 'markers': [], 'ranges': {n: [] for n in SENSOR_NAMES}}
+    client.create_subscription(Odometry, 'wheeled/ground_truth/odom', seen['odom'].append, QOS)
+    client.create_subscription(Bool, 'wheeled/bumper', seen['bumper'].append, QOS)
+    client.create_subscription(MarkerArray, 'wheeled/markers', seen['markers'].append, QOS)
+    for name in SENSOR_NAMES:
+        client.create_subscription(Range, f'wheeled/range/{name}', seen['ranges'][name].append, QOS)
+    cmd = client.create_publisher(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands', QOS)
+    assert ros.spin_until(lambda: cmd.get_subscription_count() > 0)
+    # The first step was published before our subscriptions matched: ask for it again through a reset.
+    reset = client.create_client(ResetPose, 'wheeled/reset')
+    assert reset.wait_for_service(timeout_sec=5.0)
+    future = reset.call_async(ResetPose.Request(x=0.0, y=0.5, theta=-math.pi / 2))
+    assert ros.spin_until(lambda: future.done() and len(seen['odom']) >= 1)
+    yield ros, sim, cmd, reset, seen
+    ros.close()
+
+
+def stamp_ns(msg):
+    return msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+
+
+def test_lockstep_advances_exactly_one_step_per_command(rig):
+    ros, sim, cmd, _, seen = rig
+    start = len(seen['odom'])
+    for k in range(1, 6):
+        cmd.publish(Float64MultiArray(data=[5.0, 5.0]))
+        assert ros.spin_until(lambda: len(seen['odom']) == start + k)
+    ros.spin_for(0.2)
+    assert len(seen['odom']) == start + 5
+    stamps = [stamp_ns(m) for m in seen['odom'][-6:]]
+    assert all(b - a == int(sim.dt * 1e9) for a, b in zip(stamps, stamps[1:]))
+    # 5 steps of 0.05 s at v = 0.1 m/s straight toward the wall.
+    assert seen['odom'][-1].pose.pose.position.y == pytest.approx(0.5 - 5 * 0.05 * 0.1)
+    # All five readings of one step carry the same stamp.
+    assert len({stamp_ns(seen['ranges'][n][-1]) for n in SENSOR_NAMES}) == 1
+    centre = seen['ranges']['front_center'][-1]
+    assert centre.radiation_type == Range.INFRARED
+    assert centre.range == pytest.approx(0.5 - 0.025 - 0.025, abs=1e-6)
+
+
+@pytest.mark.parametrize('bad', [[math.nan, 1.0], [1.0], [1.0, 2.0, 3.0], [1e6, 0.0], [math.inf, 0.0]])
+def test_bad_commands_are_rejected_without_advancing(rig, bad):
+    ros, sim, cmd, _, seen = rig
+    start = len(seen['odom'])
+    cmd.publish(Float64MultiArray(data=bad))
+    assert ros.spin_until(lambda: sim.commands_rejected == 1)
+    ros.spin_for(0.1)
+    assert len(seen['odom']) == start
+    cmd.publish(Float64MultiArray(data=[1.0, 1.0]))       # still alive and stepping
+    assert ros.spin_until(lambda: len(seen['odom']) == start + 1)
+
+
+def test_reset_service_moves_the_robot_and_rejects_the_wall(rig):
+    ros, _, _, reset, seen = rig
+    future = reset.call_async(ResetPose.Request(x=1.0, y=0.2, theta=0.0))
+    assert ros.spin_until(lambda: future.done())
+    assert future.result().success
+    assert ros.spin_until(lambda: seen['odom'][-1].pose.pose.position.x == pytest.approx(1.0))
+    assert seen['ranges']['side_front'][-1].range == pytest.approx(0.2 - 0.025, abs=1e-6)
+    bad = reset.call_async(ResetPose.Request(x=0.0, y=-1.0, theta=0.0))
+    assert ros.spin_until(lambda: bad.done())
+    assert not bad.result().success
+
+
+def test_bumper_reports_contact_and_markers_are_published(rig):
+    ros, _, cmd, reset, seen = rig
+    future = reset.call_async(ResetPose.Request(x=0.0, y=0.04, theta=-math.pi / 2))
+    assert ros.spin_until(lambda: future.done())
+    n = len(seen['bumper'])
+    cmd.publish(Float64MultiArray(data=[20.0, 20.0]))
+    assert ros.spin_until(lambda: len(seen['bumper']) > n)
+    assert seen['bumper'][-1].data is True
+    assert ros.spin_until(lambda: len(seen['markers']) > 0)
+    namespaces = {m.ns for m in seen['markers'][-1].markers}
+    assert {'wall', 'robot', 'beams'} <= namespaces
+
+
+def test_invalid_parameter_updates_are_refused(rig):
+    _, sim, _, _, _ = rig
+    assert not sim.set_parameters([Parameter('noise_std', value=-1.0)])[0].successful
+    assert not sim.set_parameters([Parameter('noise_std', value=math.nan)])[0].successful
+    assert sim.set_parameters([Parameter('noise_std', value=0.01)])[0].successful
+    assert sim.robot.noise_std == 0.01

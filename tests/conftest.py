@@ -1,0 +1,10 @@
+"""Fixtures for the multi-process graph and replay tests."""
+import pytest
+from mm_common.testing import RosHarness
+
+
+@pytest.fixture
+def ros():
+    harness = RosHarness()
+    yield harness
+    harness.close()
