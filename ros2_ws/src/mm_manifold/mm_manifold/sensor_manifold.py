@@ -1,0 +1,267 @@
+"""The wheeled robot's learned state representation (paper Section 2), from readings and its own commands only.
+
+SensorManifoldModel.fit takes the exploration log: readings R[k] (5 proximity sensors, +-inf out of range, NaN lost),
+the command U[k] applied after reading k, and continuous[k] (False where the next step does not follow, e.g. a
+reset). It learns the intrinsic dimension of sensor group 1, the grid parameterisation of its 3-D readings, the
+Jacobians of grid coordinates and of sensor-2 readings w.r.t. the wheel inputs, and the virtual sensor-1 space with
+its overlap with sensor 2. StateTracker turns a live stream of readings into the current state (which space is active
+and the coordinates in it). Persistence: np.savez + JSON, no pickle, written atomically.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import List, Optional, Tuple
+
+import numpy as np
+
+from mm_manifold.dimension import LocalPCADimension
+from mm_manifold.grid import ElasticGrid
+from mm_manifold.jacobian import PolynomialJacobianField, RegionJacobians
+from mm_manifold.virtual_space import Excursion, ExtrapolatedField, VirtualSensorSpace
+
+SENSOR1 = (0, 1, 2)
+SENSOR2 = (3, 4)
+SPACE_NONE, SPACE_SENSOR1, SPACE_VIRTUAL, SPACE_SENSOR2 = 0, 1, 2, 3
+FORMAT_VERSION = 1
+
+
+def group_in_range(readings: np.ndarray, group) -> np.ndarray:
+    """(n,) True where every sensor of the group reports a finite distance."""
+    return np.all(np.isfinite(np.atleast_2d(readings)[:, list(group)]), axis=1)
+
+
+def find_excursions(R: np.ndarray, U: np.ndarray, continuous: np.ndarray) -> List[Tuple[int, int]]:
+    """(exit, reentry) step indices of each run out of sensor-1 range: R[exit] in range, R[exit+1..reentry-1] out,
+    R[reentry] in range (reentry = -1 if the run ended without coming back)."""
+    inside = group_in_range(R, SENSOR1)
+    lost = np.isnan(R[:, list(SENSOR1)]).any(axis=1) & ~np.isinf(R[:, list(SENSOR1)]).any(axis=1)
+    runs = []
+    k, n = 0, len(R)
+    while k < n - 1:
+        if inside[k] and continuous[k] and not inside[k + 1] and not lost[k + 1]:
+            j = k + 1
+            while j < n and not inside[j] and continuous[j - 1]:
+                j += 1
+            ok = j < n and continuous[j - 1] and inside[j]
+            runs.append((k, j if ok else -1))
+            k = j
+        else:
+            k += 1
+    return runs
+
+
+class SensorManifoldModel:
+    """Hyperparameters: dt, grid shape, polynomial degree of the Jacobian fields, virtual-space prior weight.
+    Learned: dimension_, grid_, field1_ (grid coords), regions1_, field2_ (sensor-2 readings), virtual_,
+    n_samples_, n_excursions_."""
+
+    def __init__(self, dt: float, grid_rows: int = 10, grid_cols: int = 10, jacobian_degree: int = 2,
+                 virtual_prior_weight: float = 1.0, random_state: Optional[int] = 0):
+        self.dt = dt
+        self.grid_rows, self.grid_cols = grid_rows, grid_cols
+        self.jacobian_degree = jacobian_degree
+        self.virtual_prior_weight = virtual_prior_weight
+        self.random_state = random_state
+
+    def fit(self, R: np.ndarray, U: np.ndarray, continuous: np.ndarray,
+            grid: Optional[ElasticGrid] = None) -> 'SensorManifoldModel':
+        R, U = np.asarray(R, dtype=float), np.asarray(U, dtype=float)
+        continuous = np.asarray(continuous, dtype=bool)
+        if R.ndim != 2 or R.shape[1] != 5 or U.shape != (len(R), 2) or continuous.shape != (len(R),):
+            raise ValueError('expected R (n, 5), U (n, 2), continuous (n,)')
+        in1 = group_in_range(R, SENSOR1)
+        if in1.sum() < 50:
+            raise ValueError(f'only {int(in1.sum())} sensor-1 samples: explore more')
+        S1 = R[in1][:, list(SENSOR1)]
+        self.dimension_ = LocalPCADimension(random_state=self.random_state).fit(S1).dimension_
+        # `grid` warm-starts an online refit; otherwise fit from scratch.
+        self.grid_ = grid.partial_fit(S1) if grid is not None else ElasticGrid(
+            self.grid_rows, self.grid_cols, random_state=self.random_state).fit(S1)
+
+        step = continuous[:-1]
+        pair1 = step & in1[:-1] & in1[1:]
+        C0 = self.grid_.transform(R[:-1][pair1][:, list(SENSOR1)])
+        C1 = self.grid_.transform(R[1:][pair1][:, list(SENSOR1)])
+        rates1 = (C1 - C0) / self.dt
+        self.field1_ = PolynomialJacobianField(self.jacobian_degree).fit(C0, U[:-1][pair1], rates1)
+        node_coords = np.stack(np.meshgrid(np.arange(self.grid_rows), np.arange(self.grid_cols), indexing='ij'),
+                               axis=-1).reshape(-1, 2).astype(float)
+        self.regions1_ = RegionJacobians(bandwidth=0.8).fit(C0, U[:-1][pair1], rates1, node_coords)
+
+        in2 = group_in_range(R, SENSOR2)
+        pair2 = step & in2[:-1] & in2[1:]
+        if pair2.sum() >= 20:
+            S20, S21 = R[:-1][pair2][:, list(SENSOR2)], R[1:][pair2][:, list(SENSOR2)]
+            self.field2_ = PolynomialJacobianField(self.jacobian_degree).fit(S20, U[:-1][pair2],
+                                                                             (S21 - S20) / self.dt)
+        else:
+            self.field2_ = None
+
+        excursions = []
+        for exit_k, reentry in find_excursions(R, U, continuous):
+            start = self.grid_.transform(R[exit_k, list(SENSOR1)][None])[0]
+            end_k = reentry if reentry >= 0 else None
+            last = (reentry if reentry >= 0 else len(R) - 1)
+            e = Excursion(start=start, commands=[U[k] for k in range(exit_k, last)],
+                          end=self.grid_.transform(R[end_k, list(SENSOR1)][None])[0] if end_k is not None else None)
+            for k in range(exit_k + 1, last + 1):
+                if in2[k]:
+                    e.sensor2.append((k - exit_k, R[k, list(SENSOR2)].copy()))
+            excursions.append(e)
+        self.excursions_ = excursions
+        self.virtual_ = VirtualSensorSpace(self.dt, self.grid_box(), self.virtual_bounds(),
+                                           prior_weight=self.virtual_prior_weight).fit(self.field1_, excursions)
+        self.n_samples_ = int(len(R))
+        self.n_excursions_ = int(self.virtual_.n_excursions_)
+        return self
+
+    def grid_box(self) -> np.ndarray:
+        """Coordinates covered by the grid: where sensor 1 was observed."""
+        return np.array([[0.0, 0.0], [self.grid_rows - 1.0, self.grid_cols - 1.0]])
+
+    def virtual_bounds(self) -> np.ndarray:
+        """The virtual space may extend one grid size beyond the grid on every side."""
+        return np.array([[-(self.grid_rows - 1), -(self.grid_cols - 1)],
+                         [2 * (self.grid_rows - 1), 2 * (self.grid_cols - 1)]], dtype=float)
+
+    @property
+    def ready(self) -> bool:
+        return hasattr(self, 'virtual_') and self.field2_ is not None and len(self.virtual_.overlap_sensor2_) > 0
+
+    # --- persistence (no pickle) --------------------------------------------------------------------------------
+    def save(self, path: os.PathLike) -> None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        arrays = {
+            'grid_nodes': self.grid_.nodes_, 'grid_mean': self.grid_.mean_, 'grid_axes': self.grid_.axes_,
+            'grid_extent': self.grid_.extent_,
+            'field1_theta': self.field1_.theta_, 'field1_center': self.field1_.center_,
+            'field1_scale': self.field1_.scale_,
+            'virtual_correction': self.virtual_.field_.correction,
+            'overlap_coordinates': self.virtual_.overlap_coordinates_, 'overlap_sensor2': self.virtual_.overlap_sensor2_,
+            'overlap_exits': self.virtual_.overlap_exits_,
+            'regions1_anchors': self.regions1_.anchors_, 'regions1_jacobians': self.regions1_.jacobians_,
+            'regions1_errors': self.regions1_.standard_errors_, 'regions1_support': self.regions1_.support_,
+        }
+        if self.field2_ is not None:
+            arrays.update(field2_theta=self.field2_.theta_, field2_center=self.field2_.center_,
+                          field2_scale=self.field2_.scale_)
+        meta = {'format_version': FORMAT_VERSION, 'dt': self.dt, 'grid_rows': self.grid_rows,
+                'grid_cols': self.grid_cols, 'jacobian_degree': self.jacobian_degree,
+                'virtual_prior_weight': self.virtual_prior_weight, 'dimension': int(self.dimension_),
+                'grid_residual': self.grid_.residual_, 'n_samples': self.n_samples_,
+                'n_excursions': self.n_excursions_,
+                'reentry_rms_before': self.virtual_.reentry_rms_before_,
+                'reentry_rms_after': self.virtual_.reentry_rms_after_}
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix='.' + path.name, suffix='.npz')
+        os.close(fd)
+        np.savez(tmp, meta=np.array(json.dumps(meta)), **arrays)
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: os.PathLike) -> 'SensorManifoldModel':
+        """Load a saved model; raises ValueError with the reason if the file is missing pieces or corrupt."""
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                meta = json.loads(str(data['meta']))
+                arrays = {k: data[k] for k in data.files if k != 'meta'}
+        except (OSError, ValueError, KeyError, json.JSONDecodeError, EOFError) as exc:
+            raise ValueError(f'cannot read model {path}: {exc}') from exc
+        if meta.get('format_version') != FORMAT_VERSION:
+            raise ValueError(f"model {path}: format {meta.get('format_version')} != {FORMAT_VERSION}")
+        try:
+            model = cls(meta['dt'], meta['grid_rows'], meta['grid_cols'], meta['jacobian_degree'],
+                        meta['virtual_prior_weight'])
+            model.dimension_ = meta['dimension']
+            model.n_samples_, model.n_excursions_ = meta['n_samples'], meta['n_excursions']
+            grid = ElasticGrid(meta['grid_rows'], meta['grid_cols'])
+            grid.nodes_, grid.mean_, grid.axes_ = arrays['grid_nodes'], arrays['grid_mean'], arrays['grid_axes']
+            grid.extent_ = arrays['grid_extent']
+            grid.residual_ = meta['grid_residual']
+            if grid.nodes_.shape[:2] != (meta['grid_rows'], meta['grid_cols']) or not np.all(np.isfinite(grid.nodes_)):
+                raise ValueError('grid nodes do not match the grid shape or are not finite')
+            model.grid_ = grid
+            model.field1_ = _field(meta['jacobian_degree'], arrays['field1_theta'], arrays['field1_center'],
+                                   arrays['field1_scale'])
+            model.field2_ = (_field(meta['jacobian_degree'], arrays['field2_theta'], arrays['field2_center'],
+                                    arrays['field2_scale']) if 'field2_theta' in arrays else None)
+            model.regions1_ = RegionJacobians()
+            model.regions1_.anchors_ = arrays['regions1_anchors']
+            model.regions1_.jacobians_ = arrays['regions1_jacobians']
+            model.regions1_.standard_errors_ = arrays['regions1_errors']
+            model.regions1_.support_ = arrays['regions1_support']
+            virtual = VirtualSensorSpace(meta['dt'], model.grid_box(), model.virtual_bounds(),
+                                         meta['virtual_prior_weight'])
+            if arrays['virtual_correction'].shape != model.field1_.theta_.shape:
+                raise ValueError('virtual-space correction does not match the Jacobian field')
+            virtual.field_ = ExtrapolatedField(model.field1_, correction=arrays['virtual_correction'])
+            virtual.reentry_rms_before_ = meta['reentry_rms_before']
+            virtual.reentry_rms_after_ = meta['reentry_rms_after']
+            virtual.n_excursions_ = meta['n_excursions']
+            virtual.overlap_coordinates_ = arrays['overlap_coordinates']
+            virtual.overlap_sensor2_ = arrays['overlap_sensor2']
+            virtual.overlap_exits_ = arrays['overlap_exits']
+            virtual._fit_overlap_tree()
+            model.virtual_ = virtual
+        except KeyError as exc:
+            raise ValueError(f'model {path} lacks {exc}') from exc
+        return model
+
+
+def _field(degree, theta, center, scale) -> PolynomialJacobianField:
+    f = PolynomialJacobianField(degree)
+    f.theta_, f.center_, f.scale_ = theta, center, scale
+    if theta.ndim != 3 or not np.all(np.isfinite(theta)):
+        raise ValueError('Jacobian field coefficients are malformed')
+    return f
+
+
+class StateTracker:
+    """Live state from the reading stream: which space is active and the coordinates in it.
+
+    Lost readings (NaN) are bridged with the last valid value for up to `hold_steps` steps; sensor 1 in range ->
+    grid coordinates of the reading; out of range -> virtual coordinates integrated from the last in-range ones with
+    the commands actually sent; sensor 2 in range takes precedence for control (the paper's switch).
+    """
+
+    def __init__(self, model: SensorManifoldModel, hold_steps: int = 3):
+        self.model = model
+        self.hold_steps = hold_steps
+        self.reset()
+
+    def reset(self) -> None:
+        self.last_valid = np.full(5, np.inf)
+        self.age = np.zeros(5, dtype=int)
+        self.coordinates: Optional[np.ndarray] = None
+        self.virtual_steps = 0
+
+    def filtered(self, readings: np.ndarray) -> np.ndarray:
+        readings = np.asarray(readings, dtype=float)
+        lost = np.isnan(readings)
+        self.age = np.where(lost, self.age + 1, 0)
+        self.last_valid = np.where(lost, self.last_valid, readings)
+        return np.where(lost & (self.age > self.hold_steps), np.inf, self.last_valid)
+
+    def update(self, readings: np.ndarray, last_command: Optional[np.ndarray]):
+        """Returns (space, coordinates, sensor2 reading or None, filtered readings)."""
+        r = self.filtered(readings)
+        in1 = bool(group_in_range(r, SENSOR1)[0])
+        in2 = bool(group_in_range(r, SENSOR2)[0])
+        if in1:
+            self.coordinates = self.model.grid_.transform(r[list(SENSOR1)][None])[0]
+            self.virtual_steps = 0
+        elif self.coordinates is not None and last_command is not None:
+            self.coordinates = self.model.virtual_.step(self.coordinates, np.asarray(last_command, dtype=float))
+            self.virtual_steps += 1
+        if in2:
+            space = SPACE_SENSOR2
+        elif in1:
+            space = SPACE_SENSOR1
+        elif self.coordinates is not None:
+            space = SPACE_VIRTUAL
+        else:
+            space = SPACE_NONE
+        return space, self.coordinates, (r[list(SENSOR2)] if in2 else None), r

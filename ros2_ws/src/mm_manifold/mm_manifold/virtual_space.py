@@ -1,0 +1,177 @@
+"""Virtual sensor space (paper Section 2.2, Fig. 3 and 8b): sensor-1 coordinates continued outside sensor 1's range.
+
+Outside the range, the coordinates are integrated along the robot's own commands with a Jacobian field extrapolated
+from the observable region. Every excursion (leave the range, move, come back) gives a check: the coordinates
+predicted at re-entry against the ones observed. `fit` corrects the extrapolated field so that those predictions come
+true, staying close to the in-range fit (ridge toward it). While sensor 2 is in range during an excursion, the pair
+(virtual coordinates, sensor-2 reading) records where the virtual space overlaps sensor 2's space; a goal given as a
+sensor-2 reading maps to virtual coordinates through these pairs.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import List, Optional
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
+
+from mm_manifold.jacobian import PolynomialJacobianField, polynomial_features
+
+
+@dataclass
+class Excursion:
+    """Commands from the last in-range step until re-entry (or the end), with the sensor-2 readings seen."""
+
+    start: np.ndarray                       # coordinates at the last in-range step
+    commands: List[np.ndarray] = field(default_factory=list)
+    end: Optional[np.ndarray] = None        # observed coordinates at re-entry (None: did not come back)
+    sensor2: List[tuple] = field(default_factory=list)   # (number of commands applied, reading)
+
+
+class ExtrapolatedField:
+    """J(y) = J_in(y) + s(y) * C(y): the smooth in-range field plus a correction C (same polynomial basis). With a
+    `box`, C fades in outside it (s = 0 inside, 1 from `ramp` outside); without, it applies everywhere (s = 1), which
+    lets the re-entry checks reshape the whole smooth field - sensor-1 control uses local Jacobians in range anyway."""
+
+    def __init__(self, base: PolynomialJacobianField, box: Optional[np.ndarray] = None, ramp: float = 1.0,
+                 correction: Optional[np.ndarray] = None):
+        self.base = base
+        self.box = None if box is None else np.asarray(box, dtype=float)
+        self.ramp = ramp
+        self.correction = np.zeros_like(base.theta_) if correction is None else np.asarray(correction, dtype=float)
+
+    def outside_weight(self, Y: np.ndarray) -> np.ndarray:
+        Y = np.atleast_2d(Y)
+        if self.box is None:
+            return np.ones(len(Y))
+        gap = np.maximum(self.box[0] - Y, 0.0) + np.maximum(Y - self.box[1], 0.0)
+        return np.clip(np.linalg.norm(gap, axis=1) / self.ramp, 0.0, 1.0)
+
+    def jacobian(self, Y: np.ndarray) -> np.ndarray:
+        Y = np.atleast_2d(Y)
+        P = polynomial_features(Y, self.base.degree, self.base.center_, self.base.scale_)
+        return (np.einsum('nf,fij->nij', P, self.base.theta_)
+                + self.outside_weight(Y)[:, None, None] * np.einsum('nf,fij->nij', P, self.correction))
+
+    def rates(self, Y: np.ndarray, U: np.ndarray) -> np.ndarray:
+        return np.einsum('nij,nj->ni', self.jacobian(Y), np.atleast_2d(U))
+
+
+def integrate_batch(field, starts: np.ndarray, commands: np.ndarray, dt: float,
+                    bounds: Optional[np.ndarray] = None) -> np.ndarray:
+    """Integrate many excursions at once; commands (E, T, du) zero-padded. Returns (E, T+1, dy).
+    `bounds` (2, dy) keeps the extrapolation inside a box: a polynomial field must not run off to infinity."""
+    traj = np.empty((commands.shape[0], commands.shape[1] + 1, starts.shape[1]))
+    y = starts.copy()
+    traj[:, 0] = y
+    for t in range(commands.shape[1]):
+        y = y + field.rates(y, commands[:, t]) * dt
+        if bounds is not None:
+            y = np.clip(y, bounds[0], bounds[1])
+        traj[:, t + 1] = y
+    return traj
+
+
+class VirtualSensorSpace:
+    """Extrapolated, re-entry-corrected coordinates of sensor 1, and their overlap with sensor 2.
+
+    Parameters: `dt` of the command sequence, `bounds` (2, dy) box the extrapolated
+    coordinates stay in, `prior_weight` (how strongly the correction stays near the in-range
+    field), `max_excursion_steps` used in the correction, `goal_neighbors` for the sensor-2 -> coordinates lookup.
+    Learned: field_ (corrected PolynomialJacobianField), reentry_rms_before_/after_, overlap_coordinates_,
+    overlap_sensor2_, n_excursions_.
+    """
+
+    def __init__(self, dt: float, box: np.ndarray, bounds: Optional[np.ndarray] = None, prior_weight: float = 1.0,
+                 max_excursion_steps: int = 400, goal_neighbors: int = 4):
+        if dt <= 0:
+            raise ValueError('dt must be positive')
+        self.dt = dt
+        self.box = np.asarray(box, dtype=float)
+        self.bounds = None if bounds is None else np.asarray(bounds, dtype=float)
+        self.prior_weight = prior_weight
+        self.max_excursion_steps = max_excursion_steps
+        self.goal_neighbors = goal_neighbors
+
+    def fit(self, in_range_field: PolynomialJacobianField, excursions: List[Excursion]) -> 'VirtualSensorSpace':
+        self.field_ = ExtrapolatedField(in_range_field)
+        closed = [e for e in excursions if e.end is not None and 0 < len(e.commands) <= self.max_excursion_steps]
+        self.n_excursions_ = len(closed)
+        shape = in_range_field.theta_.shape
+        if closed:
+            starts, commands, ends = self._pack(closed)
+            scale = np.abs(in_range_field.theta_).mean() + 1e-12
+
+            def residuals(delta):
+                self.field_.correction = delta.reshape(shape) * scale
+                pred = integrate_batch(self.field_, starts, commands, self.dt, self.bounds)[:, -1]
+                return np.concatenate([(pred - ends).ravel(), np.sqrt(self.prior_weight) * delta])
+
+            before = residuals(np.zeros(int(np.prod(shape))))[:ends.size]
+            solution = least_squares(residuals, np.zeros(int(np.prod(shape))), method='trf', max_nfev=60)
+            self.field_.correction = solution.x.reshape(shape) * scale
+            after = (self.predict_reentry(closed) - ends).ravel()
+            self.reentry_rms_before_ = float(np.sqrt(np.mean(before.reshape(-1, ends.shape[1]) ** 2) * ends.shape[1]))
+            self.reentry_rms_after_ = float(np.sqrt(np.mean(after.reshape(-1, ends.shape[1]) ** 2) * ends.shape[1]))
+        else:
+            self.reentry_rms_before_ = self.reentry_rms_after_ = float('nan')
+        self._fit_overlap(excursions)
+        return self
+
+    def _pack(self, excursions: List[Excursion]):
+        T = max(len(e.commands) for e in excursions)
+        du = len(excursions[0].commands[0])
+        commands = np.zeros((len(excursions), T, du))
+        for i, e in enumerate(excursions):
+            commands[i, :len(e.commands)] = np.asarray(e.commands)
+        starts = np.array([e.start for e in excursions], dtype=float)
+        ends = np.array([e.end if e.end is not None else e.start for e in excursions], dtype=float)
+        return starts, commands, ends
+
+    def _fit_overlap(self, excursions: List[Excursion]) -> None:
+        coords, readings, exits = [], [], []
+        with_s2 = [e for e in excursions if e.sensor2 and e.commands]
+        if with_s2:
+            starts, commands, _ = self._pack(with_s2)
+            traj = integrate_batch(self.field_, starts, commands, self.dt, self.bounds)
+            for i, e in enumerate(with_s2):
+                for n_applied, reading in e.sensor2:
+                    coords.append(traj[i, n_applied])
+                    readings.append(reading)
+                    exits.append(e.start)
+        self.overlap_coordinates_ = np.array(coords).reshape(-1, self.box.shape[1])
+        self.overlap_exits_ = np.array(exits).reshape(-1, self.box.shape[1])
+        self.overlap_sensor2_ = np.array(readings).reshape(len(coords), -1) if coords else np.zeros((0, 2))
+        self._fit_overlap_tree()
+
+    def _fit_overlap_tree(self) -> None:
+        if not hasattr(self, 'overlap_exits_'):
+            self.overlap_exits_ = np.zeros_like(self.overlap_coordinates_)
+        self._tree = cKDTree(self.overlap_sensor2_) if len(self.overlap_sensor2_) else None
+
+    def predict_reentry(self, excursions: List[Excursion]) -> np.ndarray:
+        """Predicted coordinates at the end of each excursion (for validating on held-out excursions)."""
+        starts, commands, _ = self._pack(excursions)
+        return integrate_batch(self.field_, starts, commands, self.dt, self.bounds)[:, -1]
+
+    def goal_coordinates(self, sensor2_goal: np.ndarray) -> np.ndarray:
+        """Virtual sensor-1 coordinates that correspond to a sensor-2 reading (distance-weighted neighbours)."""
+        return self.goal_route(sensor2_goal)[1]
+
+    def goal_route(self, sensor2_goal: np.ndarray):
+        """(exit point, goal coordinates): where, in sensor-1 range, the practised excursions that reached readings
+        like the goal left the range, and the virtual coordinates of the goal (distance-weighted neighbours)."""
+        if self._tree is None:
+            raise ValueError('no overlap with sensor 2 has been observed yet')
+        k = min(self.goal_neighbors, len(self.overlap_sensor2_))
+        dist, idx = self._tree.query(np.asarray(sensor2_goal, dtype=float), k=k)
+        dist, idx = np.atleast_1d(dist), np.atleast_1d(idx)
+        w = 1.0 / (dist + 1e-4)
+        goal = (self.overlap_coordinates_[idx] * w[:, None]).sum(axis=0) / w.sum()
+        return self.overlap_exits_[idx[0]], goal
+
+    def step(self, coordinates: np.ndarray, command: np.ndarray) -> np.ndarray:
+        """One Euler step of the virtual coordinates under a command."""
+        y = coordinates + self.field_.rates(np.atleast_2d(coordinates), np.atleast_2d(command))[0] * self.dt
+        return y if self.bounds is None else np.clip(y, self.bounds[0], self.bounds[1])

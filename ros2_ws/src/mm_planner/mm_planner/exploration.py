@@ -1,0 +1,122 @@
+"""Random exploration of the wheeled robot from its readings only (paper Section 2.2: "collecting samples by random
+motion", and Fig. 3: "repeats motion in and out of the sensing range").
+
+Wander: piecewise-constant random wheel commands (rotations, straight runs, arcs) with a reflex that backs off when a
+front reading is very small and drives forward when the wall is at the edge of the front range. Excursion: from
+inside sensor-1 range, a random rotation / run / rotation leaves the range (often into sensor 2's), then the robot
+undoes the segments in a different order, so it comes back near - not exactly at - where it left; if that does not
+bring sensor 1 back, it retraces every command since it left (differential drive is exactly reversible), which
+guarantees the return without any world model.
+"""
+from __future__ import annotations
+
+from collections import deque
+from typing import Deque, List, Optional
+
+import numpy as np
+
+SENSOR1 = (0, 1, 2)
+
+
+class RandomExplorer:
+    """Hyperparameters: wheel speeds for turning and driving [rad/s], hold range of a random command [steps],
+    excursion probability per decision when the front-centre reading is below `excursion_below` [m], the longest run
+    of an excursion [m], reflex distances [m], approach_bias (probability that a run in the middle of the front
+    range goes toward the wall), random_state."""
+
+    def __init__(self, turn_speed: float = 2.0, drive_speed: float = 5.0, hold_steps=(4, 25),
+                 excursion_probability: float = 0.3, excursion_below: float = 0.6, excursion_run: float = 0.2,
+                 near: float = 0.08, far: float = 1.25, approach_bias: float = 0.55, max_retrace: int = 400, random_state: Optional[int] = None):
+        self.turn_speed = turn_speed
+        self.drive_speed = drive_speed
+        self.hold_steps = hold_steps
+        self.excursion_probability = excursion_probability
+        self.excursion_below = excursion_below
+        self.excursion_run = excursion_run
+        self.near = near
+        self.far = far
+        self.approach_bias = approach_bias
+        self.max_retrace = max_retrace
+        self.rng = np.random.default_rng(random_state)
+        self.plan: Deque[np.ndarray] = deque()
+        self.since_in_range: List[np.ndarray] = []
+        self.mode = 'wander'
+        self.excursions_started = 0
+
+    def _segment(self, command, steps) -> List[np.ndarray]:
+        return [np.asarray(command, dtype=float)] * int(max(1, steps))
+
+    def _random_wander(self, front: np.ndarray) -> None:
+        centre = front[1]
+        kind = self.rng.choice(['turn', 'drive', 'arc'])
+        steps = self.rng.integers(*self.hold_steps)
+        if kind == 'turn':
+            s = self.rng.choice([-1, 1]) * self.turn_speed
+            cmd = [-s, s]
+            steps = max(1, steps // 3)          # short turns: stay mostly inside sensor-1 range
+        else:
+            direction = 1.0
+            if np.isfinite(centre):
+                if centre < 0.25:
+                    direction = -1.0 if self.rng.random() < 0.7 else 1.0
+                elif centre > self.far:
+                    direction = 1.0                        # at the edge of the front range: come closer
+                elif centre > 0.35:
+                    direction = 1.0 if self.rng.random() < self.approach_bias else -1.0
+                else:
+                    direction = self.rng.choice([-1.0, 1.0])
+            v = direction * self.drive_speed * self.rng.uniform(0.4, 1.0)
+            bend = self.rng.uniform(-0.4, 0.4) * self.drive_speed if kind == 'arc' else 0.0
+            cmd = [v - bend, v + bend]
+        self.plan.extend(self._segment(cmd, steps))
+
+    def _excursion(self, front: np.ndarray) -> None:
+        """Rotate, run, rotate; then undo the segments in the same (not reversed) order: a nearby return."""
+        turn1 = self.rng.choice([-1, 1]) * self.rng.uniform(0.7, 2.1)        # rad
+        run = self.rng.choice([-1.0, 1.0]) * self.rng.uniform(0.0, self.excursion_run)
+        turn2 = self.rng.uniform(-0.5, 0.5)
+        omega = 2 * 0.02 * self.turn_speed / 0.04                             # body rate of an in-place turn
+        v = 0.02 * self.drive_speed
+        segments = [
+            ([-np.sign(turn1) * self.turn_speed, np.sign(turn1) * self.turn_speed], abs(turn1) / omega / 0.05),
+            ([np.sign(run) * self.drive_speed] * 2, abs(run) / v / 0.05),
+            ([-np.sign(turn2) * self.turn_speed, np.sign(turn2) * self.turn_speed], abs(turn2) / omega / 0.05),
+        ]
+        for cmd, steps in segments:
+            self.plan.extend(self._segment(cmd, round(steps)))
+        for cmd, steps in segments:
+            self.plan.extend(self._segment(-np.asarray(cmd), round(steps)))
+        self.mode = 'excursion'
+        self.excursions_started += 1
+
+    def command(self, readings: np.ndarray, bumped: bool = False) -> np.ndarray:
+        """Next wheel command [left, right] from the current readings (NaN = lost, +-inf = out of range)."""
+        readings = np.asarray(readings, dtype=float)
+        front = readings[list(SENSOR1)]
+        in_range = bool(np.all(np.isfinite(front)))
+        too_close = bumped or bool(np.any(np.isfinite(front) & (front < self.near))) or bool(np.any(front == -np.inf))
+        if in_range:
+            if self.mode == 'retrace':
+                self.mode = 'wander'
+                self.plan.clear()
+        if too_close and self.mode != 'retrace':
+            self.plan.clear()
+            self.plan.extend(self._segment([-self.drive_speed, -self.drive_speed], 6))
+            self.mode = 'wander'
+        if not self.plan:
+            if not in_range and self.since_in_range:
+                # Still outside after the excursion: retrace exactly, newest command first.
+                self.plan.extend(-c for c in reversed(self.since_in_range[-self.max_retrace:]))
+                self.since_in_range = []
+                self.mode = 'retrace'
+            elif in_range and front[1] < self.excursion_below and self.rng.random() < self.excursion_probability:
+                self._excursion(front)
+            else:
+                self.mode = 'wander'
+                self._random_wander(front)
+        cmd = self.plan.popleft()
+        if in_range:
+            self.since_in_range = [cmd]       # the command that may take us out is the first one to undo
+        elif self.mode != 'retrace':
+            self.since_in_range.append(cmd)
+        return cmd.copy()
