@@ -1,0 +1,217 @@
+"""Dynamic programming on a discretised joint space (paper Section 3.3). No rclpy here.
+
+The arm's two joint angles are cut into a rows x cols grid (8 x 12 in the paper; rows = joint 0, cols = joint 1).
+Actions move to one of the four adjacent cells. Rewards, as in the paper: 0 for reaching the goal cell, -100 for
+entering a cell where collision with the object is predicted, -1 for every other step. Collision cells are
+penalised, not forbidden: with -100 against at most rows*cols - 1 steps, the optimal path avoids them whenever a
+collision-free path exists, and when none exists (the goal is walled off) the values still say how to get there with
+the fewest collisions; `plan_path(..., allow_collision=False)` then returns None.
+"""
+from __future__ import annotations
+
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+
+Cell = Tuple[int, int]
+# Action order (also the tie-break order of the greedy policy): up (row - 1), down, left (col - 1), right.
+MOVES = np.array([(-1, 0), (1, 0), (0, -1), (0, 1)])
+
+
+class JointGrid:
+    """Regular grid over the joint box [joint0_limits] x [joint1_limits]; rows index joint 0, cols joint 1."""
+
+    def __init__(self, joint0_limits: Sequence[float], joint1_limits: Sequence[float], rows: int = 8, cols: int = 12):
+        lim = np.array([joint0_limits, joint1_limits], dtype=float)
+        if lim.shape != (2, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
+            raise ValueError('joint limits must be finite (lo, hi) pairs with lo < hi')
+        if rows < 1 or cols < 1:
+            raise ValueError('rows and cols must be >= 1')
+        self.limits = lim
+        self.rows, self.cols = int(rows), int(cols)
+        self.step = (lim[:, 1] - lim[:, 0]) / np.array([self.rows, self.cols])
+
+    @property
+    def shape(self) -> Tuple[int, int]:
+        return self.rows, self.cols
+
+    def centre(self, cell: Cell) -> np.ndarray:
+        """Joint vector at the centre of a cell."""
+        r, c = self.check_cell(cell)
+        return self.limits[:, 0] + (np.array([r, c]) + 0.5) * self.step
+
+    def centres(self) -> np.ndarray:
+        """(rows, cols, 2) joint vectors of all cell centres."""
+        r, c = np.meshgrid(np.arange(self.rows), np.arange(self.cols), indexing='ij')
+        return self.limits[:, 0] + (np.stack([r, c], -1) + 0.5) * self.step
+
+    def cell_of(self, joints: Sequence[float]) -> Cell:
+        """Cell containing a joint vector (joints outside the box go to the nearest border cell)."""
+        q = np.asarray(joints, dtype=float).reshape(-1)
+        if q.shape != (2,) or not np.all(np.isfinite(q)):
+            raise ValueError('expected 2 finite joint values')
+        idx = np.floor((q - self.limits[:, 0]) / self.step).astype(int)
+        idx = np.clip(idx, 0, [self.rows - 1, self.cols - 1])
+        return int(idx[0]), int(idx[1])
+
+    def check_cell(self, cell: Cell) -> Cell:
+        r, c = (int(v) for v in cell)
+        if not (0 <= r < self.rows and 0 <= c < self.cols):
+            raise ValueError(f'cell {cell} is outside the {self.rows}x{self.cols} grid')
+        return r, c
+
+
+def value_iteration(collision: np.ndarray, goal: Cell, step_reward: float = -1.0, collision_reward: float = -100.0,
+                    goal_reward: float = 0.0, gamma: float = 1.0, tol: float = 1e-9,
+                    max_iter: int = 100000) -> Tuple[np.ndarray, np.ndarray]:
+    """Optimal values and greedy policy on a 4-connected grid.
+
+    V(goal) = 0 (terminal). For every other cell s: V(s) = max over the in-grid neighbours s' of R(s') + gamma V(s'),
+    with R(s') = goal_reward if s' is the goal, collision_reward if s' is a collision cell, step_reward otherwise.
+    Synchronous sweeps from V = 0 until the largest change is below tol (with gamma = 1 and negative rewards this
+    is Bellman-Ford: exact after as many sweeps as the longest optimal path).
+    Returns values (rows, cols) and policy (rows, cols) of indices into MOVES (-1 at the goal).
+    """
+    col = np.asarray(collision, dtype=bool)
+    if col.ndim != 2 or col.size == 0:
+        raise ValueError('collision must be a non-empty 2-D boolean array')
+    rows, cols = col.shape
+    gr, gc = (int(v) for v in goal)
+    if not (0 <= gr < rows and 0 <= gc < cols):
+        raise ValueError(f'goal {goal} is outside the {rows}x{cols} grid')
+    if not 0.0 < gamma <= 1.0:
+        raise ValueError('gamma must be in (0, 1]')
+    if max(step_reward, collision_reward) > 0 and gamma == 1.0:
+        raise ValueError('with gamma = 1 the step and collision rewards must be <= 0 (values would diverge)')
+    reward = np.where(col, collision_reward, step_reward).astype(float)
+    reward[gr, gc] = goal_reward
+    terminal = np.zeros_like(col)
+    terminal[gr, gc] = True
+    V = np.zeros((rows, cols))
+    for _ in range(max_iter):
+        q = _action_values(V, reward, terminal, gamma)
+        new = q.max(axis=0)
+        new[gr, gc] = 0.0
+        delta = np.max(np.abs(new - V))
+        V = new
+        if delta < tol:
+            break
+    else:
+        raise RuntimeError('value iteration did not converge; raise max_iter or tol')
+    q = _action_values(V, reward, terminal, gamma)
+    policy = np.argmax(q, axis=0)            # first maximum = tie-break order of MOVES
+    policy[gr, gc] = -1
+    return V, policy
+
+
+def _action_values(V: np.ndarray, reward: np.ndarray, terminal: np.ndarray, gamma: float) -> np.ndarray:
+    """(4, rows, cols) value of each move; a padded array makes every neighbour a slice, off-grid moves -inf."""
+    rows, cols = V.shape
+    target = reward + gamma * np.where(terminal, 0.0, V)
+    pad = np.full((rows + 2, cols + 2), -np.inf)
+    pad[1:-1, 1:-1] = target
+    return np.stack([pad[1 + dr:1 + dr + rows, 1 + dc:1 + dc + cols] for dr, dc in MOVES])
+
+
+def plan_path(values: np.ndarray, start: Cell, goal: Cell, collision: Optional[np.ndarray] = None,
+              policy: Optional[np.ndarray] = None, allow_collision: bool = True, step_reward: float = -1.0,
+              collision_reward: float = -100.0, goal_reward: float = 0.0,
+              gamma: float = 1.0) -> Optional[List[Cell]]:
+    """Cells from start to goal following the greedy policy (derived from `values` and the rewards of the
+    `collision` map when `policy` is not given, exactly as value_iteration does).
+
+    With allow_collision=False, returns None when the path would enter a collision cell (no collision-free path
+    exists). Also returns None if the policy does not reach the goal."""
+    values = np.asarray(values, dtype=float)
+    rows, cols = values.shape
+    for name, cell in (('start', start), ('goal', goal)):
+        if not (0 <= cell[0] < rows and 0 <= cell[1] < cols):
+            raise ValueError(f'{name} {cell} is outside the {rows}x{cols} grid')
+    col = np.zeros((rows, cols), bool) if collision is None else np.asarray(collision, dtype=bool)
+    if col.shape != (rows, cols):
+        raise ValueError('collision and values must have the same shape')
+    if policy is None:
+        reward = np.where(col, collision_reward, step_reward).astype(float)
+        reward[goal[0], goal[1]] = goal_reward
+        terminal = np.zeros((rows, cols), bool)
+        terminal[goal[0], goal[1]] = True
+        policy = np.argmax(_action_values(values, reward, terminal, gamma), axis=0)
+    cell = (int(start[0]), int(start[1]))
+    goal = (int(goal[0]), int(goal[1]))
+    path = [cell]
+    for _ in range(rows * cols):
+        if cell == goal:
+            return path
+        a = int(policy[cell])
+        if a < 0:
+            return None
+        cell = (cell[0] + int(MOVES[a][0]), cell[1] + int(MOVES[a][1]))
+        if not allow_collision and col[cell]:
+            return None
+        path.append(cell)
+    return path if cell == goal else None
+
+
+class DPPlanner:
+    """Holds the joint grid, the predicted collision map and the goal; replans whenever either changes.
+
+    Parameters: grid (JointGrid), step_reward, collision_reward, goal_reward, gamma.
+    State: collision_ (rows, cols) bool, goal_ (cell or None), values_ and policy_ (after a plan), n_plans_.
+    """
+
+    def __init__(self, grid: JointGrid, step_reward: float = -1.0, collision_reward: float = -100.0,
+                 goal_reward: float = 0.0, gamma: float = 1.0):
+        self.grid = grid
+        self.step_reward = float(step_reward)
+        self.collision_reward = float(collision_reward)
+        self.goal_reward = float(goal_reward)
+        self.gamma = float(gamma)
+        self.collision_ = np.zeros(grid.shape, bool)
+        self.goal_: Optional[Cell] = None
+        self.values_: Optional[np.ndarray] = None
+        self.policy_: Optional[np.ndarray] = None
+        self.n_plans_ = 0
+
+    def _replan(self) -> None:
+        if self.goal_ is None:
+            return
+        self.values_, self.policy_ = value_iteration(self.collision_, self.goal_, self.step_reward,
+                                                     self.collision_reward, self.goal_reward, self.gamma)
+        self.n_plans_ += 1
+
+    def set_goal(self, goal: Cell) -> None:
+        self.goal_ = self.grid.check_cell(goal)
+        self._replan()
+
+    def set_goal_joints(self, joints: Sequence[float]) -> Cell:
+        cell = self.grid.cell_of(joints)
+        self.set_goal(cell)
+        return cell
+
+    def update_collision(self, mask: np.ndarray) -> bool:
+        """Replace the collision map; replan (if a goal is set) and return True only if it changed."""
+        m = np.asarray(mask, dtype=bool)
+        if m.shape != self.grid.shape:
+            raise ValueError(f'collision map must have shape {self.grid.shape}, got {m.shape}')
+        if np.array_equal(m, self.collision_):
+            return False
+        self.collision_ = m.copy()
+        self._replan()
+        return True
+
+    def next_cell(self, current: Cell) -> Optional[Cell]:
+        """The neighbour to move to from `current` (None at the goal or before a goal is set)."""
+        if self.policy_ is None:
+            return None
+        r, c = self.grid.check_cell(current)
+        a = int(self.policy_[r, c])
+        if a < 0:
+            return None
+        return r + int(MOVES[a][0]), c + int(MOVES[a][1])
+
+    def plan(self, start: Cell, allow_collision: bool = True) -> Optional[List[Cell]]:
+        """Cells from start to the goal (see plan_path); None before a goal is set."""
+        if self.values_ is None:
+            return None
+        return plan_path(self.values_, self.grid.check_cell(start), self.goal_, collision=self.collision_,
+                         policy=self.policy_, allow_collision=allow_collision)

@@ -1,0 +1,87 @@
+import numpy as np
+import pytest
+
+from mm_planner.value_iteration import DPPlanner, JointGrid, MOVES, plan_path, value_iteration
+
+
+def test_small_grid_matches_hand_computed_values():
+    # 3x4 grid, goal top right, one collision cell at (1, 1).
+    # V(s) = -(moves to the goal - 1) on the shortest collision-free path; the collision cell itself can leave at -1
+    # per step: (1,1) -> (0,1) -> (0,2) -> goal = -1 + -1 + 0 = -2.
+    collision = np.zeros((3, 4), bool)
+    collision[1, 1] = True
+    values, policy = value_iteration(collision, goal=(0, 3))
+    expected = np.array([[-2, -1, 0, 0],
+                         [-3, -2, -1, 0],
+                         [-4, -3, -2, -1]], float)
+    np.testing.assert_array_equal(values, expected)
+    assert policy[0, 3] == -1
+    # From (1, 0) going down-right through (1, 1) would cost -100: the policy goes up to (0, 0) instead.
+    assert tuple(MOVES[policy[1, 0]]) == (-1, 0)
+
+
+def test_path_avoids_collision_cells():
+    collision = np.zeros((8, 12), bool)
+    collision[1:8, 5] = True          # a wall with a gap in row 0
+    values, policy = value_iteration(collision, goal=(7, 11))
+    path = plan_path(values, (7, 0), (7, 11), collision=collision, policy=policy)
+    assert path[0] == (7, 0) and path[-1] == (7, 11)
+    assert not any(collision[c] for c in path)
+    assert (0, 5) in path
+    steps = np.abs(np.diff(np.array(path), axis=0)).sum(axis=1)
+    assert np.all(steps == 1)
+    # Shortest collision-free path: up 7, right 11, down 7.
+    assert len(path) - 1 == 7 + 11 + 7
+    # The same path when the policy is derived from the values and the collision map.
+    assert plan_path(values, (7, 0), (7, 11), collision=collision) == path
+
+
+def test_walled_off_goal_is_reported_unreachable_without_collision():
+    collision = np.zeros((5, 5), bool)
+    collision[1:4, 1:4] = True
+    collision[2, 2] = False           # goal enclosed by a ring of collision cells
+    values, policy = value_iteration(collision, goal=(2, 2))
+    assert plan_path(values, (0, 0), (2, 2), collision=collision, policy=policy, allow_collision=False) is None
+    path = plan_path(values, (0, 0), (2, 2), collision=collision, policy=policy)
+    assert path[-1] == (2, 2)
+    assert sum(collision[c] for c in path) == 1      # crosses the ring exactly once
+    assert values[0, 0] < -100
+
+
+def test_bad_inputs_raise():
+    with pytest.raises(ValueError):
+        value_iteration(np.zeros((3, 3), bool), goal=(3, 0))
+    with pytest.raises(ValueError):
+        value_iteration(np.zeros((3, 3), bool), goal=(0, 0), gamma=0.0)
+    with pytest.raises(ValueError):
+        JointGrid((1.0, 0.0), (0.0, 1.0))
+
+
+def test_joint_grid_cells_and_centres():
+    grid = JointGrid((-3.2, -0.8), (0.0, 2.2), rows=8, cols=12)
+    centres = grid.centres()
+    assert centres.shape == (8, 12, 2)
+    for r in range(8):
+        for c in range(12):
+            assert grid.cell_of(centres[r, c]) == (r, c)
+    np.testing.assert_allclose(grid.centre((0, 0)), [-3.2 + 0.15, 2.2 / 24])
+    assert grid.cell_of([-10.0, 10.0]) == (0, 11)      # clipped to the border
+
+
+def test_dp_planner_replans_when_the_collision_map_changes():
+    grid = JointGrid((0.0, 1.0), (0.0, 1.0), rows=4, cols=4)
+    planner = DPPlanner(grid)
+    assert planner.next_cell((0, 0)) is None           # no goal yet
+    planner.set_goal((0, 3))
+    assert planner.plan((0, 0)) == [(0, 0), (0, 1), (0, 2), (0, 3)]
+    mask = np.zeros((4, 4), bool)
+    mask[0, 1] = True
+    assert planner.update_collision(mask) is True
+    assert planner.update_collision(mask.copy()) is False
+    assert planner.n_plans_ == 2
+    path = planner.plan((0, 0), allow_collision=False)
+    assert (0, 1) not in path and path[-1] == (0, 3)
+    assert planner.next_cell((0, 0)) == path[1]
+    assert planner.next_cell((0, 3)) is None
+    with pytest.raises(ValueError):
+        planner.update_collision(np.zeros((3, 3), bool))
