@@ -76,8 +76,8 @@ def run_episode(robot: WheeledRobot, model: SensorManifoldModel, start, goal_rea
                 controller: Optional[SwitchingController] = None, max_steps: int = 1500,
                 dt: float = 0.05) -> Episode:
     controller = controller or SwitchingController(dt)
-    waypoint, goal_coordinates = model.virtual_.goal_route(goal_reading)
-    controller.set_goal(goal_reading, goal_coordinates, waypoint)
+    waypoint, goal_coordinates, fallbacks = model.virtual_.goal_route(goal_reading)
+    controller.set_goal(goal_reading, goal_coordinates, waypoint, fallbacks)
     tracker = StateTracker(model)
     pose, last = tuple(start), None
     ep = Episode()
@@ -93,7 +93,8 @@ def run_episode(robot: WheeledRobot, model: SensorManifoldModel, start, goal_rea
             u, done = np.zeros(2), False
         else:
             J1 = model.regions1_.interpolate(coords) if space == 1 else None
-            u, done, _ = controller.command(space, coords, s2, model.virtual_.field_, model.field2_, J1, bounds)
+            u, done, _ = controller.command(space, coords, s2, model.virtual_.field_, model.field2_, J1, bounds,
+                                                model.sensor2_box_)
         if done:
             ep.reached = True
             break

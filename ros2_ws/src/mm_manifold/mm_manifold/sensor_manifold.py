@@ -93,6 +93,8 @@ class SensorManifoldModel:
 
         in2 = group_in_range(R, SENSOR2)
         pair2 = step & in2[:-1] & in2[1:]
+        self.sensor2_box_ = (np.array([R[in2][:, list(SENSOR2)].min(axis=0), R[in2][:, list(SENSOR2)].max(axis=0)])
+                             if in2.any() else np.full((2, len(SENSOR2)), np.nan))
         if pair2.sum() >= 20:
             S20, S21 = R[:-1][pair2][:, list(SENSOR2)], R[1:][pair2][:, list(SENSOR2)]
             self.field2_ = PolynomialJacobianField(self.jacobian_degree).fit(S20, U[:-1][pair2],
@@ -137,7 +139,7 @@ class SensorManifoldModel:
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {
             'grid_nodes': self.grid_.nodes_, 'grid_mean': self.grid_.mean_, 'grid_axes': self.grid_.axes_,
-            'grid_extent': self.grid_.extent_,
+            'grid_extent': self.grid_.extent_, 'sensor2_box': self.sensor2_box_,
             'field1_theta': self.field1_.theta_, 'field1_center': self.field1_.center_,
             'field1_scale': self.field1_.scale_,
             'virtual_correction': self.virtual_.field_.correction,
@@ -177,6 +179,7 @@ class SensorManifoldModel:
                         meta['virtual_prior_weight'])
             model.dimension_ = meta['dimension']
             model.n_samples_, model.n_excursions_ = meta['n_samples'], meta['n_excursions']
+            model.sensor2_box_ = arrays['sensor2_box']
             grid = ElasticGrid(meta['grid_rows'], meta['grid_cols'])
             grid.nodes_, grid.mean_, grid.axes_ = arrays['grid_nodes'], arrays['grid_mean'], arrays['grid_axes']
             grid.extent_ = arrays['grid_extent']
@@ -224,12 +227,15 @@ class StateTracker:
 
     Lost readings (NaN) are bridged with the last valid value for up to `hold_steps` steps; sensor 1 in range ->
     grid coordinates of the reading; out of range -> virtual coordinates integrated from the last in-range ones with
-    the commands actually sent; sensor 2 in range takes precedence for control (the paper's switch).
+    the commands actually sent; sensor 2 in range takes precedence for control (the paper's switch). When sensor 2
+    drops out of range after having been in range, its reading is continued with the learned sensor-2 field for up
+    to `sensor2_hold_steps` (a short virtual sensor 2), so a manoeuvre near its range edge does not flip the space.
     """
 
-    def __init__(self, model: SensorManifoldModel, hold_steps: int = 3):
+    def __init__(self, model: SensorManifoldModel, hold_steps: int = 3, sensor2_hold_steps: int = 20):
         self.model = model
         self.hold_steps = hold_steps
+        self.sensor2_hold_steps = sensor2_hold_steps
         self.reset()
 
     def reset(self) -> None:
@@ -237,26 +243,40 @@ class StateTracker:
         self.age = np.zeros(5, dtype=int)
         self.coordinates: Optional[np.ndarray] = None
         self.virtual_steps = 0
+        self.sensor2: Optional[np.ndarray] = None
+        self.sensor2_virtual_steps = 0
 
     def filtered(self, readings: np.ndarray) -> np.ndarray:
         readings = np.asarray(readings, dtype=float)
+        if readings.shape != (5,):
+            raise ValueError(f'expected 5 readings, got shape {readings.shape}')
         lost = np.isnan(readings)
         self.age = np.where(lost, self.age + 1, 0)
         self.last_valid = np.where(lost, self.last_valid, readings)
         return np.where(lost & (self.age > self.hold_steps), np.inf, self.last_valid)
 
     def update(self, readings: np.ndarray, last_command: Optional[np.ndarray]):
-        """Returns (space, coordinates, sensor2 reading or None, filtered readings)."""
+        """Returns (space, coordinates, sensor-2 reading (measured or continued) or None, filtered readings)."""
         r = self.filtered(readings)
         in1 = bool(group_in_range(r, SENSOR1)[0])
         in2 = bool(group_in_range(r, SENSOR2)[0])
+        command = None if last_command is None else np.asarray(last_command, dtype=float)
         if in1:
             self.coordinates = self.model.grid_.transform(r[list(SENSOR1)][None])[0]
             self.virtual_steps = 0
-        elif self.coordinates is not None and last_command is not None:
-            self.coordinates = self.model.virtual_.step(self.coordinates, np.asarray(last_command, dtype=float))
+        elif self.coordinates is not None and command is not None:
+            self.coordinates = self.model.virtual_.step(self.coordinates, command)
             self.virtual_steps += 1
         if in2:
+            self.sensor2 = r[list(SENSOR2)].copy()
+            self.sensor2_virtual_steps = 0
+        elif (self.sensor2 is not None and command is not None and self.model.field2_ is not None
+              and self.sensor2_virtual_steps < self.sensor2_hold_steps):
+            self.sensor2 = self.sensor2 + self.model.field2_.rates(self.sensor2[None], command[None])[0] * self.model.dt
+            self.sensor2_virtual_steps += 1
+        else:
+            self.sensor2 = None
+        if self.sensor2 is not None:
             space = SPACE_SENSOR2
         elif in1:
             space = SPACE_SENSOR1
@@ -264,4 +284,4 @@ class StateTracker:
             space = SPACE_VIRTUAL
         else:
             space = SPACE_NONE
-        return space, self.coordinates, (r[list(SENSOR2)] if in2 else None), r
+        return space, self.coordinates, self.sensor2, r

@@ -159,17 +159,24 @@ class VirtualSensorSpace:
         """Virtual sensor-1 coordinates that correspond to a sensor-2 reading (distance-weighted neighbours)."""
         return self.goal_route(sensor2_goal)[1]
 
-    def goal_route(self, sensor2_goal: np.ndarray):
-        """(exit point, goal coordinates): where, in sensor-1 range, the practised excursions that reached readings
-        like the goal left the range, and the virtual coordinates of the goal (distance-weighted neighbours)."""
+    def goal_route(self, sensor2_goal: np.ndarray, n_fallbacks: int = 5):
+        """(exit point, goal coordinates, fallbacks) for a sensor-2 goal reading: where, in sensor-1 range, the
+        practised excursions that reached readings like the goal left the range; the virtual coordinates of the goal
+        (distance-weighted neighbours); and virtual coordinates of practised readings nearer the wall than the goal
+        (ordered by closeness to it), to aim at if the goal's coordinates are reached without sensor 2 in sight."""
         if self._tree is None:
             raise ValueError('no overlap with sensor 2 has been observed yet')
+        sensor2_goal = np.asarray(sensor2_goal, dtype=float)
         k = min(self.goal_neighbors, len(self.overlap_sensor2_))
-        dist, idx = self._tree.query(np.asarray(sensor2_goal, dtype=float), k=k)
+        dist, idx = self._tree.query(sensor2_goal, k=k)
         dist, idx = np.atleast_1d(dist), np.atleast_1d(idx)
         w = 1.0 / (dist + 1e-4)
         goal = (self.overlap_coordinates_[idx] * w[:, None]).sum(axis=0) / w.sum()
-        return self.overlap_exits_[idx[0]], goal
+        deeper = np.flatnonzero(np.all(self.overlap_sensor2_ < sensor2_goal, axis=1))
+        order = deeper[np.argsort(np.linalg.norm(self.overlap_sensor2_[deeper] - sensor2_goal, axis=1))]
+        step = max(1, len(order) // (4 * n_fallbacks))     # spread the fallbacks a little deeper each time
+        fallbacks = self.overlap_coordinates_[order[::step][:n_fallbacks]]
+        return self.overlap_exits_[idx[0]], goal, fallbacks
 
     def step(self, coordinates: np.ndarray, command: np.ndarray) -> np.ndarray:
         """One Euler step of the virtual coordinates under a command."""

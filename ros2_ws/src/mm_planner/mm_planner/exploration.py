@@ -6,7 +6,9 @@ front reading is very small and drives forward when the wall is at the edge of t
 inside sensor-1 range, a random rotation / run / rotation leaves the range (often into sensor 2's), then the robot
 undoes the segments in a different order, so it comes back near - not exactly at - where it left; if that does not
 bring sensor 1 back, it retraces every command since it left (differential drive is exactly reversible), which
-guarantees the return without any world model.
+guarantees the return without any world model. Practice: while an excursion has sensor 2 in range, the robot now
+and then inserts a few short random turns and drives followed by their exact reverse, so that sensor 2's Jacobians
+are learned from many samples and the excursion resumes where it was.
 """
 from __future__ import annotations
 
@@ -16,17 +18,20 @@ from typing import Deque, List, Optional
 import numpy as np
 
 SENSOR1 = (0, 1, 2)
+SENSOR2 = (3, 4)
 
 
 class RandomExplorer:
     """Hyperparameters: wheel speeds for turning and driving [rad/s], hold range of a random command [steps],
     excursion probability per decision when the front-centre reading is below `excursion_below` [m], the longest run
     of an excursion [m], reflex distances [m], approach_bias (probability that a run in the middle of the front
-    range goes toward the wall), random_state."""
+    range goes toward the wall), practice_probability (per step with sensor 2 in range during an excursion) and
+    practice_segments (random turn/drive segments per practice, each undone), random_state."""
 
     def __init__(self, turn_speed: float = 2.0, drive_speed: float = 5.0, hold_steps=(4, 25),
                  excursion_probability: float = 0.3, excursion_below: float = 0.6, excursion_run: float = 0.2,
-                 near: float = 0.08, far: float = 1.25, approach_bias: float = 0.55, max_retrace: int = 400, random_state: Optional[int] = None):
+                 near: float = 0.08, far: float = 1.25, approach_bias: float = 0.55, max_retrace: int = 400, practice_probability: float = 0.15,
+                 practice_segments: int = 4, random_state: Optional[int] = None):
         self.turn_speed = turn_speed
         self.drive_speed = drive_speed
         self.hold_steps = hold_steps
@@ -37,6 +42,9 @@ class RandomExplorer:
         self.far = far
         self.approach_bias = approach_bias
         self.max_retrace = max_retrace
+        self.practice_probability = practice_probability
+        self.practice_segments = practice_segments
+        self.practice_left = 0
         self.rng = np.random.default_rng(random_state)
         self.plan: Deque[np.ndarray] = deque()
         self.since_in_range: List[np.ndarray] = []
@@ -89,6 +97,21 @@ class RandomExplorer:
         self.mode = 'excursion'
         self.excursions_started += 1
 
+    def _practice(self) -> None:
+        """Random short turns/drives, then the same in reverse order with negated commands (exact undo)."""
+        moves = []
+        for _ in range(self.practice_segments):
+            steps = int(self.rng.integers(1, 8))
+            sign = self.rng.choice([-1.0, 1.0])
+            if self.rng.random() < 0.5:
+                cmd = np.array([-sign, sign]) * self.turn_speed * self.rng.uniform(0.3, 1.0)
+            else:
+                cmd = np.array([sign, sign]) * self.drive_speed * self.rng.uniform(0.3, 1.0)
+            moves += [cmd] * steps
+        sequence = moves + [-c for c in reversed(moves)]
+        self.plan.extendleft(reversed(sequence))
+        self.practice_left = len(sequence)
+
     def command(self, readings: np.ndarray, bumped: bool = False) -> np.ndarray:
         """Next wheel command [left, right] from the current readings (NaN = lost, +-inf = out of range)."""
         readings = np.asarray(readings, dtype=float)
@@ -101,8 +124,15 @@ class RandomExplorer:
                 self.plan.clear()
         if too_close and self.mode != 'retrace':
             self.plan.clear()
+            self.practice_left = 0
             self.plan.extend(self._segment([-self.drive_speed, -self.drive_speed], 6))
             self.mode = 'wander'
+        in_range2 = bool(np.all(np.isfinite(readings[list(SENSOR2)])))
+        if self.practice_left > 0:
+            self.practice_left -= 1
+        elif (self.mode == 'excursion' and in_range2 and not too_close and self.plan
+              and self.rng.random() < self.practice_probability):
+            self._practice()
         if not self.plan:
             if not in_range and self.since_in_range:
                 # Still outside after the excursion: retrace exactly, newest command first.

@@ -23,14 +23,17 @@ SPACE_NONE, SPACE_SENSOR1, SPACE_VIRTUAL, SPACE_SENSOR2 = 0, 1, 2, 3
 
 
 class SwitchingController:
-    """Hyperparameters: dt, max_wheel_speed [rad/s], horizon [steps], speed levels of the candidate set,
-    travel_weight (cost of wheel travel relative to the squared goal error), tolerance [m] on each sensor-2 reading,
-    settle_steps (consecutive steps within tolerance before stopping), damping of the least-squares step,
-    waypoint_tolerance [grid units]."""
+    """Hyperparameters: dt, max_wheel_speed [rad/s], horizon [steps] of the virtual-space search, speed levels of
+    its candidate set, travel_weight (cost of wheel travel relative to the squared goal error), tolerance [m] on each
+    sensor-2 reading, settle_steps (consecutive steps within tolerance before stopping), damping of the least-squares
+    step, waypoint_tolerance [grid units], turn_speed / drive_speed [rad/s] of the sensor-2 manoeuvres."""
 
     def __init__(self, dt: float, max_wheel_speed: float = 6.0, horizon: int = 12,
                  speed_levels=(1.0, 0.4, 0.12, 0.0), travel_weight: float = 1e-3, tolerance: float = 0.01,
-                 settle_steps: int = 2, damping: float = 1e-2, waypoint_tolerance: float = 0.3):
+                 settle_steps: int = 2, damping: float = 1e-2, waypoint_tolerance: float = 0.3,
+                 turn_speed: float = 1.5, drive_speed: float = 4.0):
+        if dt <= 0 or max_wheel_speed <= 0 or tolerance <= 0 or horizon < 1:
+            raise ValueError('dt, max_wheel_speed, tolerance and horizon must be positive')
         self.dt = dt
         self.max_wheel_speed = max_wheel_speed
         self.horizon = horizon
@@ -38,55 +41,98 @@ class SwitchingController:
         self.travel_weight = travel_weight
         self.settle_steps = settle_steps
         self.damping = damping
+        self.waypoint_tolerance = waypoint_tolerance
+        self._plan: Optional[np.ndarray] = None
         levels = sorted({s * max_wheel_speed * sign for s in speed_levels for sign in (-1, 1)})
         self.candidates = np.array(list(product(levels, levels)), dtype=float)
-        coarse = sorted({s * max_wheel_speed * sign for s in speed_levels[::2] for sign in (-1, 1)})
-        self.coarse_candidates = np.array(list(product(coarse, coarse)), dtype=float)
+        self.manoeuvres, self.manoeuvre_travel = self._manoeuvres(min(turn_speed, max_wheel_speed),
+                                                                  min(drive_speed, max_wheel_speed))
         self.goal_sensor2: Optional[np.ndarray] = None
         self.goal_coordinates: Optional[np.ndarray] = None
         self.waypoint: Optional[np.ndarray] = None
-        self.waypoint_tolerance = waypoint_tolerance
         self.settled = 0
 
+    @staticmethod
+    def _manoeuvres(turn_speed: float, drive_speed: float, turns=(0, 1, 3, 6, 12),
+                    drives=(0, 1, 3, 8, 16, 28)):
+        """Turn-drive-turn command sequences (zero-padded): the shortest manoeuvres of a differential drive that
+        change a distance-like reading while keeping the heading-like one (parking manoeuvres)."""
+        turn = [(n, sign) for n in turns for sign in ((1,) if n == 0 else (-1, 1))]
+        drive = [(n, sign) for n in drives for sign in ((1,) if n == 0 else (-1, 1))]
+        length = 2 * max(turns) + max(drives)
+        seqs, travel = [], []
+        for (n1, s1), (n2, s2), (n3, s3) in product(turn, drive, turn):
+            seq = np.zeros((length, 2))
+            seq[:n1] = (-s1 * turn_speed, s1 * turn_speed)
+            seq[n1:n1 + n2] = (s2 * drive_speed, s2 * drive_speed)
+            seq[n1 + n2:n1 + n2 + n3] = (-s3 * turn_speed, s3 * turn_speed)
+            seqs.append(seq)
+            travel.append(n2 * drive_speed + 0.1 * (n1 + n3) * turn_speed)
+        return np.array(seqs), np.array(travel)
+
     def set_goal(self, sensor2_goal: np.ndarray, goal_coordinates: np.ndarray,
-                 waypoint: Optional[np.ndarray] = None) -> None:
+                 waypoint: Optional[np.ndarray] = None, fallbacks: Optional[np.ndarray] = None) -> None:
         """`waypoint`: where in sensor-1 range the practised excursions toward this goal left the range; the robot
-        first goes there with sensor-1 control, then aims at the goal's virtual coordinates."""
-        self.goal_sensor2 = np.asarray(sensor2_goal, dtype=float)
-        self.goal_coordinates = np.asarray(goal_coordinates, dtype=float)
+        first goes there with sensor-1 control, then aims at the goal's virtual coordinates. `fallbacks`: virtual
+        coordinates to aim at next if the goal's are reached while sensor 2 still does not see the wall (the virtual
+        estimate has drifted)."""
+        sensor2_goal = np.asarray(sensor2_goal, dtype=float)
+        goal_coordinates = np.asarray(goal_coordinates, dtype=float)
+        if not (np.all(np.isfinite(sensor2_goal)) and np.all(np.isfinite(goal_coordinates))):
+            raise ValueError('goal reading and coordinates must be finite')
+        self.goal_sensor2 = sensor2_goal
+        self.goal_coordinates = goal_coordinates
         self.waypoint = None if waypoint is None else np.asarray(waypoint, dtype=float)
+        self.fallbacks = [] if fallbacks is None else [np.asarray(f, dtype=float) for f in fallbacks]
         self.settled = 0
+        self._plan = None
 
     @property
     def target(self) -> Optional[np.ndarray]:
         return self.waypoint if self.waypoint is not None else self.goal_coordinates
 
-    def _best_command(self, field, state: np.ndarray, goal: np.ndarray, scale: np.ndarray,
-                      bounds: Optional[np.ndarray], two_segments: bool = False) -> Tuple[np.ndarray, float]:
-        """Best first command among constant (or, with `two_segments`, piecewise-constant: first half, second half)
-        command sequences, judged by the learned field's prediction of the state over the horizon."""
+    def _best_constant_command(self, field, state: np.ndarray, goal: np.ndarray, scale: float,
+                               bounds: Optional[np.ndarray]) -> np.ndarray:
+        """Best constant command over the horizon (closest predicted approach to the goal, plus wheel travel),
+        judged by the learned field; the damped least-squares Jacobian step is one of the candidates."""
         dls = self.jacobian_step(field.jacobian(state[None])[0], goal - state)
-        first = np.vstack([self.candidates, dls])
-        if two_segments:
-            second = self.coarse_candidates
-            U1 = np.repeat(first, len(second), axis=0)
-            U2 = np.tile(second, (len(first), 1))
-        else:
-            U1 = U2 = first
-        y = np.repeat(state[None], len(U1), axis=0)
-        best = np.full(len(U1), np.inf)
-        travel = np.zeros(len(U1))
-        half = self.horizon // 2
-        for t in range(self.horizon):
-            U = U1 if t < half else U2
+        U = np.vstack([self.candidates, dls])
+        y = np.repeat(state[None], len(U), axis=0)
+        best = np.full(len(U), np.inf)
+        travel = np.zeros(len(U))
+        for _ in range(self.horizon):
             y = y + field.rates(y, U) * self.dt
             if bounds is not None:
                 y = np.clip(y, bounds[0], bounds[1])
             travel += np.abs(U.sum(axis=1))
-            cost = np.sum(((y - goal) / scale) ** 2, axis=1) + self.travel_weight * travel
-            best = cost if two_segments else np.minimum(best, cost)
-        i = int(np.argmin(best))
-        return U1[i], float(np.linalg.norm((goal - state) / scale))
+            best = np.minimum(best, np.sum(((y - goal) / scale) ** 2, axis=1) + self.travel_weight * travel)
+        return U[int(np.argmin(best))]
+
+    def _best_manoeuvre(self, field, state: np.ndarray, goal: np.ndarray, box: Optional[np.ndarray]) -> np.ndarray:
+        """Next command of the turn-drive-turn manoeuvre under way, or, when none is, the first command of the one
+        whose predicted end reading is closest to the goal (in tolerance units). A chosen manoeuvre is carried out
+        to its end: re-choosing every step from slightly wrong predictions makes the robot dither between turning
+        left and right. Manoeuvres predicted to leave `box` (2, d), the readings sensor 2 was seen at, are
+        discarded: there it would be lost and the field is extrapolating."""
+        if self._plan is not None and len(self._plan):
+            u, self._plan = self._plan[0], self._plan[1:]
+            return u
+        seqs = self.manoeuvres
+        y = np.repeat(state[None], len(seqs), axis=0)
+        leaves = np.zeros(len(seqs), dtype=bool)
+        for t in range(seqs.shape[1]):
+            y = y + field.rates(y, seqs[:, t]) * self.dt
+            if box is not None:
+                leaves |= np.any((y < box[0]) | (y > box[1]), axis=1)
+                y = np.clip(y, box[0], box[1])
+        cost = np.sum(((y - goal) / self.tolerance) ** 2, axis=1) + self.travel_weight * self.manoeuvre_travel
+        cost[leaves | ~np.isfinite(cost)] = np.inf
+        if not np.isfinite(cost).any():        # every manoeuvre leaves: the one-step least-squares move
+            return self.jacobian_step(field.jacobian(state[None])[0], goal - state)
+        best = seqs[int(np.argmin(cost))]
+        moving = np.flatnonzero(np.any(best != 0, axis=1))
+        self._plan = best[1:moving[-1] + 1] if len(moving) else None
+        return best[0]
 
     def jacobian_step(self, J: np.ndarray, error: np.ndarray) -> np.ndarray:
         """Damped least-squares Jacobian control: the wheel command that closes `error` in about `horizon` steps."""
@@ -96,9 +142,10 @@ class SwitchingController:
 
     def command(self, space: int, coordinates: Optional[np.ndarray], sensor2: Optional[np.ndarray],
                 virtual_field, sensor2_field: PolynomialJacobianField, sensor1_jacobian: Optional[np.ndarray] = None,
-                bounds: Optional[np.ndarray] = None, coordinate_scale: float = 1.0):
+                bounds: Optional[np.ndarray] = None, sensor2_box: Optional[np.ndarray] = None):
         """(wheel command, reached, error in the active space) for the current state. `sensor1_jacobian` is the local
-        Jacobian of the grid coordinates at the current reading (used while sensor 1 is in range)."""
+        Jacobian of the grid coordinates at the current reading (used while sensor 1 is in range);
+        `sensor2_box` (2, 2) the range of sensor-2 readings seen during exploration."""
         if self.goal_sensor2 is None:
             raise ValueError('no goal set')
         if space == SPACE_SENSOR2:
@@ -107,12 +154,13 @@ class SwitchingController:
                 self.settled += 1
                 if self.settled >= self.settle_steps:
                     return np.zeros(2), True, float(error.max())
-            else:
-                self.settled = 0
-            u, err = self._best_command(sensor2_field, np.asarray(sensor2, dtype=float), self.goal_sensor2,
-                                        np.full(len(sensor2), self.tolerance), None, two_segments=True)
+                return np.zeros(2), False, float(error.max())
+            self.settled = 0
+            u = self._best_manoeuvre(sensor2_field, np.asarray(sensor2, dtype=float), self.goal_sensor2,
+                                     sensor2_box)
             return u, False, float(error.max())
         self.settled = 0
+        self._plan = None
         if coordinates is None:
             return np.zeros(2), False, float('nan')
         coordinates = np.asarray(coordinates, dtype=float)
@@ -121,6 +169,10 @@ class SwitchingController:
         if space == SPACE_SENSOR1 and sensor1_jacobian is not None and self.waypoint is not None:
             error = self.waypoint - coordinates
             return self.jacobian_step(sensor1_jacobian, error), False, float(np.linalg.norm(error))
-        u, err = self._best_command(virtual_field, coordinates, self.target,
-                                    np.full(len(coordinates), coordinate_scale), bounds)
-        return u, False, err
+        u = self._best_constant_command(virtual_field, coordinates, self.target, 1.0, bounds)
+        stalled = not np.any(u) or np.linalg.norm(coordinates - self.target) < self.waypoint_tolerance
+        if space == SPACE_VIRTUAL and self.waypoint is None and self.fallbacks and stalled:
+            # Arrived (as far as the virtual estimate knows) but sensor 2 sees nothing: aim deeper.
+            self.goal_coordinates = self.fallbacks.pop(0)
+            u = self._best_constant_command(virtual_field, coordinates, self.target, 1.0, bounds)
+        return u, False, float(np.linalg.norm(self.target - coordinates))
