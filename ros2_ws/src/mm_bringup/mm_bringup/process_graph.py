@@ -5,6 +5,7 @@ this module. It runs the same `lib/<package>/<executable>` files that `ros2 run`
 """
 from __future__ import annotations
 
+import ctypes
 import os
 import signal
 import subprocess
@@ -51,6 +52,13 @@ def _param_literal(value: object) -> str:
     return repr(value)
 
 
+def _die_with_parent() -> None:
+    """Runs in the child before exec: Linux sends it SIGTERM when the process that started it dies, so a crashed or
+    killed test/demo never leaves nodes behind that keep talking on the domain (the recorder still finalises)."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(1, signal.SIGTERM)          # PR_SET_PDEATHSIG
+
+
 @dataclass
 class NodeProcess:
     package: str
@@ -89,7 +97,8 @@ class ProcessGraph:
             out = subprocess.DEVNULL
         # Own process group, so a SIGINT aimed at this graph never reaches the caller (pytest, make).
         node.process = subprocess.Popen(cmd, env=self.env, stdout=out, stderr=subprocess.STDOUT,
-                                        stdin=subprocess.DEVNULL, start_new_session=True)
+                                        stdin=subprocess.DEVNULL, start_new_session=True,
+                                        preexec_fn=_die_with_parent if os.name == 'posix' else None)
         if out is not subprocess.DEVNULL:
             out.close()
         self.nodes.append(node)

@@ -33,9 +33,10 @@ def group_in_range(readings: np.ndarray, group) -> np.ndarray:
     return np.all(np.isfinite(np.atleast_2d(readings)[:, list(group)]), axis=1)
 
 
-def find_excursions(R: np.ndarray, U: np.ndarray, continuous: np.ndarray) -> List[Tuple[int, int]]:
-    """(exit, reentry) step indices of each run out of sensor-1 range: R[exit] in range, R[exit+1..reentry-1] out,
-    R[reentry] in range (reentry = -1 if the run ended without coming back)."""
+def find_excursions(R: np.ndarray, U: np.ndarray, continuous: np.ndarray) -> List[Tuple[int, int, int]]:
+    """(exit, reentry, last) step indices of each run out of sensor-1 range: R[exit] in range, R[exit+1..reentry-1]
+    out, R[reentry] in range; reentry = -1 if the run ended without coming back (end of data or a break in the chain
+    of consecutive samples), and `last` is the last sample the robot's own commands still connect to the exit."""
     inside = group_in_range(R, SENSOR1)
     lost = np.isnan(R[:, list(SENSOR1)]).any(axis=1) & ~np.isinf(R[:, list(SENSOR1)]).any(axis=1)
     runs = []
@@ -46,7 +47,7 @@ def find_excursions(R: np.ndarray, U: np.ndarray, continuous: np.ndarray) -> Lis
             while j < n and not inside[j] and continuous[j - 1]:
                 j += 1
             ok = j < n and continuous[j - 1] and inside[j]
-            runs.append((k, j if ok else -1))
+            runs.append((k, j, j) if ok else (k, -1, j - 1))
             k = j
         else:
             k += 1
@@ -103,10 +104,9 @@ class SensorManifoldModel:
             self.field2_ = None
 
         excursions = []
-        for exit_k, reentry in find_excursions(R, U, continuous):
+        for exit_k, reentry, last in find_excursions(R, U, continuous):
             start = self.grid_.transform(R[exit_k, list(SENSOR1)][None])[0]
             end_k = reentry if reentry >= 0 else None
-            last = (reentry if reentry >= 0 else len(R) - 1)
             e = Excursion(start=start, commands=[U[k] for k in range(exit_k, last)],
                           end=self.grid_.transform(R[end_k, list(SENSOR1)][None])[0] if end_k is not None else None)
             for k in range(exit_k + 1, last + 1):

@@ -26,12 +26,13 @@ class SwitchingController:
     """Hyperparameters: dt, max_wheel_speed [rad/s], horizon [steps] of the virtual-space search, speed levels of
     its candidate set, travel_weight (cost of wheel travel relative to the squared goal error), tolerance [m] on each
     sensor-2 reading, settle_steps (consecutive steps within tolerance before stopping), damping of the least-squares
-    step, waypoint_tolerance [grid units], turn_speed / drive_speed [rad/s] of the sensor-2 manoeuvres."""
+    step, waypoint_tolerance [grid units], turn_speed / drive_speed [rad/s] of the sensor-2 manoeuvres, stall_steps
+    (steps without progress toward the target before aiming at the next fallback)."""
 
     def __init__(self, dt: float, max_wheel_speed: float = 6.0, horizon: int = 12,
                  speed_levels=(1.0, 0.4, 0.12, 0.0), travel_weight: float = 1e-3, tolerance: float = 0.01,
                  settle_steps: int = 2, damping: float = 1e-2, waypoint_tolerance: float = 0.3,
-                 turn_speed: float = 1.5, drive_speed: float = 4.0):
+                 turn_speed: float = 1.5, drive_speed: float = 4.0, stall_steps: int = 20):
         if dt <= 0 or max_wheel_speed <= 0 or tolerance <= 0 or horizon < 1:
             raise ValueError('dt, max_wheel_speed, tolerance and horizon must be positive')
         self.dt = dt
@@ -42,6 +43,7 @@ class SwitchingController:
         self.settle_steps = settle_steps
         self.damping = damping
         self.waypoint_tolerance = waypoint_tolerance
+        self.stall_steps = stall_steps
         self._plan: Optional[np.ndarray] = None
         levels = sorted({s * max_wheel_speed * sign for s in speed_levels for sign in (-1, 1)})
         self.candidates = np.array(list(product(levels, levels)), dtype=float)
@@ -84,6 +86,7 @@ class SwitchingController:
         self.goal_coordinates = goal_coordinates
         self.waypoint = None if waypoint is None else np.asarray(waypoint, dtype=float)
         self.fallbacks = [] if fallbacks is None else [np.asarray(f, dtype=float) for f in fallbacks]
+        self.best_error, self.stalled_steps = np.inf, 0
         self.settled = 0
         self._plan = None
 
@@ -169,10 +172,15 @@ class SwitchingController:
         if space == SPACE_SENSOR1 and sensor1_jacobian is not None and self.waypoint is not None:
             error = self.waypoint - coordinates
             return self.jacobian_step(sensor1_jacobian, error), False, float(np.linalg.norm(error))
-        u = self._best_constant_command(virtual_field, coordinates, self.target, 1.0, bounds)
-        stalled = not np.any(u) or np.linalg.norm(coordinates - self.target) < self.waypoint_tolerance
-        if space == SPACE_VIRTUAL and self.waypoint is None and self.fallbacks and stalled:
-            # Arrived (as far as the virtual estimate knows) but sensor 2 sees nothing: aim deeper.
+        error = float(np.linalg.norm(self.target - coordinates))
+        if error < self.best_error - 0.05:
+            self.best_error, self.stalled_steps = error, 0
+        else:
+            self.stalled_steps += 1
+        if self.waypoint is None and self.fallbacks and (self.stalled_steps > self.stall_steps
+                                                         or error < self.waypoint_tolerance):
+            # Arrived (as far as the estimate knows) or stuck, and sensor 2 sees nothing: aim deeper.
             self.goal_coordinates = self.fallbacks.pop(0)
-            u = self._best_constant_command(virtual_field, coordinates, self.target, 1.0, bounds)
+            self.best_error, self.stalled_steps = np.inf, 0
+        u = self._best_constant_command(virtual_field, coordinates, self.target, 1.0, bounds)
         return u, False, float(np.linalg.norm(self.target - coordinates))

@@ -1,0 +1,184 @@
+"""The Section 2 experiment through the ROS graph: wheeled_sim (lockstep) + sensor_manifold + switching_controller as
+separate processes, driven and scored by an evaluation harness node.
+
+The harness is the experimenter, not part of the robot: it resets the simulator to task poses, shows the robot the
+goal as a sensor-2 reading (computed from the goal pose with the simulator's sensor model), and scores episodes with
+the ground-truth odometry. The learning and control nodes never see any of that (tests check their subscriptions).
+Used by `make demo`, the wall_task benchmark and the integration tests.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import List, Optional, Sequence
+
+import numpy as np
+from mm_common.testing import RosHarness
+from mm_msgs.msg import ControllerStatus, ManifoldState, SensorGoal
+from mm_msgs.srv import ResetPose
+from nav_msgs.msg import Odometry
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+from mm_bringup.process_graph import ProcessGraph
+
+LOOP_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+DONE = (ControllerStatus.PHASE_GOAL_REACHED, ControllerStatus.PHASE_FAILED)
+
+
+@dataclass
+class GraphEpisode:
+    poses: List[tuple] = field(default_factory=list)          # ground truth per step (evaluation only)
+    blind: List[bool] = field(default_factory=list)           # no sensor group fully in range at that step
+    spaces: List[int] = field(default_factory=list)
+    coordinates: List[Sequence[float]] = field(default_factory=list)
+    sensor1: List[Sequence[float]] = field(default_factory=list)
+    sensor2: List[Sequence[float]] = field(default_factory=list)
+    phase: int = ControllerStatus.PHASE_IDLE
+    detail: str = ''
+    wall_seconds: float = 0.0
+
+    @property
+    def reached(self) -> bool:
+        return self.phase == ControllerStatus.PHASE_GOAL_REACHED
+
+    def path_length(self) -> float:
+        p = np.array([q[:2] for q in self.poses]) if self.poses else np.zeros((1, 2))
+        return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
+
+    def blind_fraction(self) -> float:
+        """Share of the path length travelled while no sensor group saw the wall."""
+        if len(self.poses) < 2:
+            return 0.0
+        p = np.array([q[:2] for q in self.poses])
+        seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+        blind = np.array(self.blind[:len(seg)], dtype=bool)
+        total = seg.sum()
+        return float(seg[blind[:len(seg)]].sum() / total) if total > 0 else 0.0
+
+
+def _ns(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+class WallGraph:
+    """Start the graph (optionally with a recorder already running elsewhere) and run reaching episodes."""
+
+    def __init__(self, work_dir: Path, exploration_steps: int = 10000, noise_std: float = 0.0, dropout: float = 0.0,
+                 model_path: Optional[Path] = None, seed: int = 0, graph: Optional[ProcessGraph] = None,
+                 dt: float = 0.05):
+        self.work_dir = Path(work_dir)
+        self.work_dir.mkdir(parents=True, exist_ok=True)
+        self.dt = dt
+        self.own_graph = graph is None
+        self.graph = graph or ProcessGraph(log_dir=self.work_dir / 'logs')
+        model_path = Path(model_path) if model_path else self.work_dir / 'wall_model.npz'
+        sim_time = {'use_sim_time': True}
+        self.nodes = [
+            self.graph.start('mm_sim', 'wheeled_sim', {'dt': dt, 'noise_std': noise_std, 'dropout': dropout,
+                                                       'random_seed': seed, 'republish_period': 0.5}),
+            self.graph.start('mm_manifold', 'sensor_manifold', {**sim_time, 'dt': dt, 'learn_after': exploration_steps,
+                                                                'model_path': str(model_path)}),
+            self.graph.start('mm_planner', 'switching_controller', {**sim_time, 'dt': dt, 'random_seed': seed,
+                                                                    'exploration_steps': exploration_steps}),
+        ]
+        self.ros = RosHarness()
+        node = self.node = self.ros.node('wall_experimenter')
+        self.status: Optional[ControllerStatus] = None
+        self.episode: Optional[GraphEpisode] = None
+        self.last_pose: Optional[tuple] = None
+        self.samples = 0
+        self.state_stamp: Optional[int] = None
+        node.create_subscription(ControllerStatus, 'wheeled/controller/status', self._on_status, LOOP_QOS)
+        node.create_subscription(Odometry, 'wheeled/ground_truth/odom', self._on_odom, LOOP_QOS)
+        node.create_subscription(ManifoldState, 'wheeled/manifold/state', self._on_state, LOOP_QOS)
+        self.goal_pub = node.create_publisher(SensorGoal, 'wheeled/goal', LATCHED_QOS)
+        self.reset_client = node.create_client(ResetPose, 'wheeled/reset')
+
+    # --- callbacks (evaluation side) --------------------------------------------------------------------------------
+    def _on_status(self, msg: ControllerStatus) -> None:
+        self.status = msg
+
+    def _on_odom(self, msg: Odometry) -> None:
+        q = msg.pose.pose.orientation
+        self.last_pose = (msg.pose.pose.position.x, msg.pose.pose.position.y, 2 * math.atan2(q.z, q.w))
+        if self.episode is not None:
+            self.episode.poses.append(self.last_pose)
+
+    def _on_state(self, msg: ManifoldState) -> None:
+        self.samples = msg.samples
+        self.state_stamp = _ns(msg.header.stamp)
+        if self.episode is not None:
+            flags = list(msg.in_range)
+            self.episode.blind.append(not all(flags[:3]) and not all(flags[3:]))
+            self.episode.spaces.append(int(msg.active_space))
+            self.episode.coordinates.append(list(msg.coordinates))
+            self.episode.sensor1.append(list(msg.sensor1))
+            self.episode.sensor2.append(list(msg.sensor2))
+
+    # --- experiment steps -------------------------------------------------------------------------------------------
+    def _check_alive(self) -> None:
+        for n in self.nodes:
+            if n.process.poll() is not None:
+                raise RuntimeError(f'{n.label} exited with {n.process.returncode}:\n{self.graph.log_tail(n)}')
+
+    def spin_until(self, predicate, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate():
+                return
+            self.ros.executor.spin_once(timeout_sec=0.05)
+            self._check_alive()
+        raise TimeoutError(f'timed out after {timeout:.0f} s waiting for {what}')
+
+    def wait_learned(self, timeout: float = 600.0) -> None:
+        """Exploration and learning happen on their own; wait until the controller waits for a goal."""
+        self.spin_until(lambda: self.status is not None
+                        and self.status.phase == ControllerStatus.PHASE_WAITING_FOR_GOAL, timeout,
+                        'exploration and learning')
+
+    def reset(self, pose: Sequence[float]) -> None:
+        self.spin_until(lambda: self.reset_client.service_is_ready(), 30.0, 'the reset service')
+        future = self.reset_client.call_async(ResetPose.Request(x=float(pose[0]), y=float(pose[1]),
+                                                                theta=float(pose[2])))
+        self.spin_until(future.done, 30.0, 'the reset')
+        if not future.result().success:
+            raise RuntimeError(future.result().message)
+
+    def run_episode(self, start: Sequence[float], goal_reading: Sequence[float], tolerance: float,
+                    timeout: float = 300.0) -> GraphEpisode:
+        """Show the goal, put the robot at the start, and record until the controller reports the outcome."""
+        goal = SensorGoal(sensor_group=SensorGoal.SENSOR2, reading=[float(v) for v in goal_reading],
+                          tolerance=float(tolerance))
+        began = time.monotonic()
+        # Reset first: the loop is paused (the controller answers no state between tasks), the reset produces the
+        # episode's first readings, and once the controller has seen them the goal makes it answer exactly that
+        # state - one command in flight, as lockstep requires.
+        self.episode = GraphEpisode()
+        seen = self.samples
+        self.reset(start)
+        self.spin_until(lambda: self.samples > seen and self.state_stamp is not None, 30.0, 'the first state')
+        first = self.state_stamp
+        self.spin_until(lambda: self.status is not None and _ns(self.status.header.stamp) >= first, 30.0,
+                        'the controller to see the first state')
+        goal.header.stamp = self.node.get_clock().now().to_msg()
+        self.status = None
+        self.goal_pub.publish(goal)
+        self.spin_until(lambda: self.status is not None and self.status.phase in DONE, timeout, 'the episode')
+        episode, self.episode = self.episode, None
+        episode.phase, episode.detail = self.status.phase, self.status.detail
+        episode.wall_seconds = time.monotonic() - began
+        return episode
+
+    def close(self) -> None:
+        self.ros.close()
+        for n in reversed(self.nodes):
+            self.graph.stop(n)
+
+    def __enter__(self) -> 'WallGraph':
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
