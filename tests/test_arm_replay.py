@@ -73,10 +73,10 @@ def test_rebuilt_embedding_matches_the_online_fit(recorded):
 
     extractor = KeypointExtractor()
     kps = [extractor(frames[s][0]) for s in stamps]
-    rebuilt = ArmStateLearner(online.n_components, online.n_neighbors, online.lle_method, online.sphere_metric,
+    rebuilt = ArmStateLearner(online.n_components, online.n_neighbors, online.lle_method, online.region,
                               online.grid_shape, online.joint_limits, online.cell_min_frames,
                               online.cell_collision_fraction, online.map_margin,
-                              random_state=online.random_state).fit(kps, online.train_joints_, online.train_contact_,
+                              random_state=online.random_state, n_folds=online.n_folds).fit(kps, online.train_joints_, online.train_contact_,
                                                                     stamps)
     assert rebuilt.vectorizer_.n_labels_ == online.vectorizer_.n_labels_
     np.testing.assert_allclose(rebuilt.vectorizer_.training_vectors_, online.vectorizer_.training_vectors_,
@@ -85,7 +85,9 @@ def test_rebuilt_embedding_matches_the_online_fit(recorded):
     spread = np.abs(online.lle_.embedding_).max()
     np.testing.assert_allclose(rebuilt.lle_.embedding_, online.lle_.embedding_, atol=1e-6 * max(spread, 1.0))
     np.testing.assert_allclose(rebuilt.pca_.embedding_, online.pca_.embedding_, atol=1e-6)
-    assert rebuilt.sphere_.radius_ == pytest.approx(online.sphere_.radius_, rel=1e-6)
+    assert rebuilt.selection_['model'] == online.selection_['model']
+    assert rebuilt.selection_['threshold'] == pytest.approx(online.selection_['threshold'], rel=1e-6, abs=1e-9)
+    np.testing.assert_allclose(rebuilt.train_closeness_, online.train_closeness_, rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(rebuilt.collision_map_, online.collision_map_)
 
     # frames after the fit (the planner's moves) map out of sample to the same states with both models

@@ -5,11 +5,13 @@
 fig11_synthetic_lle.png   synthetic keypoints of one frame and the LLE of 1000 such frames coloured by hand-object
                           distance (Section 3.4)
 fig12_arm_embedding.png   LLE of rendered exploration frames: contact / no-contact training frames, held-out frames
-                          mapped out of sample, and the contact sphere (Section 3.5)
+                          mapped out of sample and the contact region; closeness of the held-out frames against the
+                          true hand-object distance (Section 3.5)
 fig13_planned_motion.png  snapshots of the arm following the DP plan around the object, and the predicted collision
                           map with the path on the joint grid (Section 3.3)
-tables_arm.md             Tables 1-2 (held-out collision prediction, LLE vs PCA) from the benchmark JSON if present,
-                          otherwise measured here
+tables_arm.md             Tables 1-2 (held-out collision prediction, LLE vs PCA; the paper's sphere, the ellipsoid, the
+                          quadric and the cross-validated choice) from the benchmark JSON if present, otherwise
+                          measured here
 All data are computed here with the plain modules (the same code the nodes run); nothing is read from the ROS graph.
 """
 from __future__ import annotations
@@ -69,23 +71,44 @@ def fig12(out: Path, seed: int = 0, n_frames: int = 600, n_held_out: int = 200) 
     rng = np.random.default_rng(seed + 1)
     q_test = model.sample_joints(n_held_out, rng)
     c_test = np.array([model.in_contact(q) for q in q_test])
-    Y_test = np.array([learner.transform(extractor(model.render(q)))['embedding'] for q in q_test])
+    d_test = np.array([model.hand_object_distance(q) for q in q_test])
+    states = [learner.transform(extractor(model.render(q))) for q in q_test]
+    Y_test = np.array([s['embedding'] for s in states])
+    close_test = np.array([s['closeness'] for s in states])
     Y, c = learner.lle_.embedding_, learner.train_contact_
-    fig = plt.figure(figsize=(12, 5))
-    ax = fig.add_subplot(1, 2, 1, projection='3d')
+    sel = learner.selection_
+    fig = plt.figure(figsize=(17, 5))
+    ax = fig.add_subplot(1, 3, 1, projection='3d')
     ax.scatter(*Y[~c].T, s=4, c='tab:blue', alpha=0.35, label='no contact (training)')
     ax.scatter(*Y[c].T, s=6, c='tab:red', alpha=0.6, label='contact (training)')
     ax.scatter(*Y_test[~c_test].T, s=14, marker='x', c='navy', label='no contact (held out)')
     ax.scatter(*Y_test[c_test].T, s=14, marker='x', c='darkred', label='contact (held out)')
-    u, v = np.mgrid[0:2 * np.pi:24j, 0:np.pi:12j]
-    r, ctr = learner.sphere_.radius_, learner.sphere_.centre_
-    ax.plot_wireframe(ctr[0] + r * np.cos(u) * np.sin(v), ctr[1] + r * np.sin(u) * np.sin(v), ctr[2] + r * np.cos(v),
-                      color='k', linewidth=0.3, alpha=0.5)
-    ax.set_title(f'LLE of {n_frames} exploration frames, contact sphere r = {r:.3f}')
+    region = learner.region_
+    if hasattr(region, 'radius_'):          # sphere or ellipsoid: draw it
+        u, v = np.mgrid[0:2 * np.pi:24j, 0:np.pi:12j]
+        unit = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)], -1) * region.radius_
+        pts = unit @ np.linalg.inv(region.whitening_).T + region.centre_
+        ax.plot_wireframe(pts[..., 0], pts[..., 1], pts[..., 2], color='k', linewidth=0.3, alpha=0.5)
+    else:                                   # quadric: mark the training frames on its surface
+        near = np.abs(learner.train_closeness_) < 0.15
+        ax.scatter(*Y[near].T, s=10, facecolors='none', edgecolors='k', linewidths=0.5,
+                   label='on the contact surface')
+    ax.set_title(f'LLE of {n_frames} exploration frames, contact region: {sel["model"]}\n'
+                 f'(cross-validated TPR {sel["cv_tpr"]:.3f} / FPR {sel["cv_fpr"]:.3f})', fontsize=9)
     ax.legend(fontsize=7, loc='upper left')
-    ax = fig.add_subplot(1, 2, 2)
+    ax = fig.add_subplot(1, 3, 2)
+    ax.scatter(d_test[~c_test], close_test[~c_test], s=10, c='navy', marker='x', label='no contact')
+    ax.scatter(d_test[c_test], close_test[c_test], s=10, c='darkred', marker='x', label='contact')
+    ax.axhline(0.0, color='k', linewidth=0.8, label='region surface (closeness 0)')
+    ax.axvline(model.contact_distance, color='grey', linestyle='--', linewidth=0.8, label='contact distance')
+    ax.set_xlabel('true hand-object distance [px] (not seen by the robot)')
+    ax.set_ylabel('closeness to the contact region')
+    ax.set_ylim(max(-6.0, close_test.min() - 0.2), close_test.max() + 0.2)
+    ax.set_title(f'{n_held_out} held-out frames mapped out of sample', fontsize=9)
+    ax.legend(fontsize=7)
+    ax = fig.add_subplot(1, 3, 3)
     ax.imshow(model.render(learner.train_joints_[int(np.argmax(c))]))
-    ax.set_title('a training frame with contact')
+    ax.set_title('a training frame with contact', fontsize=9)
     ax.axis('off')
     fig.tight_layout()
     fig.savefig(out / 'fig12_arm_embedding.png', dpi=110)
@@ -125,19 +148,33 @@ def fig13(out: Path, seed: int = 3, n_frames: int = 500) -> None:
 
 
 def tables(out: Path, bench_json: Path) -> None:
+    keys = (('lle', 'Table 1: LLE embedding, contact region chosen by cross-validation'),
+            ('lle_sphere', 'Table 1 (paper\'s method): LLE embedding, contact sphere'),
+            ('lle_ellipsoid', 'LLE embedding, contact ellipsoid (Mahalanobis)'),
+            ('lle_quadric', 'LLE embedding, contact quadric (logistic regression)'),
+            ('pca', 'Table 2: PCA embedding, contact region chosen by cross-validation'),
+            ('pca_sphere', 'Table 2 (paper\'s method): PCA embedding, contact sphere'),
+            ('pca_ellipsoid', 'PCA embedding, contact ellipsoid (Mahalanobis)'),
+            ('pca_quadric', 'PCA embedding, contact quadric (logistic regression)'))
     if bench_json.is_file():
         b = json.loads(bench_json.read_text())
         source = f'{bench_json} (held-out frames, {b.get("eval_test")} of {b.get("eval_frames")})'
-        conf = {m: {k: b[f'{m}_{k}'] for k in ('tp', 'fn', 'fp', 'tn')} for m in ('lle', 'pca')}
+        conf = {m: {k: b.get(f'{m}_{k}') for k in ('tp', 'fn', 'fp', 'tn', 'region', 'n_neighbors', 'C')}
+                for m, _ in keys if f'{m}_tp' in b}
     else:
         from mm_manifold.arm_evaluation import evaluate_collision_prediction
         ev = evaluate_collision_prediction(700, 0)
         source = f'measured by figures_arm (held-out frames, {ev["n_test"]} of {ev["n_frames"]})'
-        conf = {m: ev[m] for m in ('lle', 'pca')}
-    text = ['# Arm collision prediction (paper Tables 1-2)', '', f'Source: {source}.', '']
-    for title, m in (('Table 1: LLE embedding, contact sphere', 'lle'),
-                     ('Table 2: PCA embedding, contact sphere', 'pca')):
-        text += [f'## {title}', '', '```', format_confusion(conf[m]), '```', '']
+        conf = {m: ev[m] for m, _ in keys}
+    text = ['# Arm collision prediction (paper Tables 1-2)', '', f'Source: {source}.', '',
+            'n_neighbors, the radius / threshold and (first rows) the region model were chosen by 5-fold '
+            'cross-validation on the training frames only.', '']
+    for m, title in keys:
+        if m not in conf:
+            continue
+        k = conf[m]
+        detail = f"region {k['region']}, n_neighbors {k['n_neighbors']}" + (f", C {k['C']:g}" if k.get('C') else '')
+        text += [f'## {title}', '', f'({detail})', '', '```', format_confusion(k), '```', '']
     text += ['Paper: LLE 82.6 % / 18.0 %, PCA 54.8 % / 21.4 % (collision recognised / false alarms).', '']
     (out / 'tables_arm.md').write_text('\n'.join(text))
 

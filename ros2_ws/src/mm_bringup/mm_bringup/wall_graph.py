@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Optional, Sequence
+from typing import Deque, List, Optional, Sequence
 
 import numpy as np
 from mm_common.testing import RosHarness
@@ -44,6 +45,14 @@ class GraphEpisode:
     def reached(self) -> bool:
         return self.phase == ControllerStatus.PHASE_GOAL_REACHED
 
+    def add_state(self, msg: ManifoldState) -> None:
+        flags = list(msg.in_range)
+        self.blind.append(not all(flags[:3]) and not all(flags[3:]))
+        self.spaces.append(int(msg.active_space))
+        self.coordinates.append(list(msg.coordinates))
+        self.sensor1.append(list(msg.sensor1))
+        self.sensor2.append(list(msg.sensor2))
+
     def path_length(self) -> float:
         p = np.array([q[:2] for q in self.poses]) if self.poses else np.zeros((1, 2))
         return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
@@ -52,11 +61,11 @@ class GraphEpisode:
         """Share of the path length travelled while no sensor group saw the wall."""
         if len(self.poses) < 2:
             return 0.0
-        p = np.array([q[:2] for q in self.poses])
+        n = min(len(self.poses) - 1, len(self.blind))     # odometry and states of the last step may be in flight
+        p = np.array([q[:2] for q in self.poses[:n + 1]])
         seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
-        blind = np.array(self.blind[:len(seg)], dtype=bool)
         total = seg.sum()
-        return float(seg[blind[:len(seg)]].sum() / total) if total > 0 else 0.0
+        return float(seg[np.array(self.blind[:n], dtype=bool)].sum() / total) if total > 0 else 0.0
 
 
 def _ns(stamp) -> int:
@@ -66,24 +75,17 @@ def _ns(stamp) -> int:
 class WallGraph:
     """Start the graph (optionally with a recorder already running elsewhere) and run reaching episodes."""
 
-    def __init__(self, work_dir: Path, exploration_steps: int = 10000, noise_std: float = 0.0, dropout: float = 0.0,
-                 model_path: Optional[Path] = None, seed: int = 0, graph: Optional[ProcessGraph] = None,
-                 dt: float = 0.05):
+    def __init__(self, work_dir: Path, exploration_steps: int = 10000, noise_range_fraction: float = 0.0,
+                 dropout: float = 0.0, model_path: Optional[Path] = None, seed: int = 0,
+                 graph: Optional[ProcessGraph] = None, dt: float = 0.05, recorder: Optional[str] = None):
+        """`recorder`: name of a recorder node already running in `graph`; each node is then started only once the
+        recorder subscribes to the topics of the nodes before it, so the bag holds the loop from its first step
+        (the simulator re-publishes its first step until a command arrives)."""
         self.work_dir = Path(work_dir)
         self.work_dir.mkdir(parents=True, exist_ok=True)
         self.dt = dt
-        self.own_graph = graph is None
         self.graph = graph or ProcessGraph(log_dir=self.work_dir / 'logs')
         model_path = Path(model_path) if model_path else self.work_dir / 'wall_model.npz'
-        sim_time = {'use_sim_time': True}
-        self.nodes = [
-            self.graph.start('mm_sim', 'wheeled_sim', {'dt': dt, 'noise_std': noise_std, 'dropout': dropout,
-                                                       'random_seed': seed, 'republish_period': 0.5}),
-            self.graph.start('mm_manifold', 'sensor_manifold', {**sim_time, 'dt': dt, 'learn_after': exploration_steps,
-                                                                'model_path': str(model_path)}),
-            self.graph.start('mm_planner', 'switching_controller', {**sim_time, 'dt': dt, 'random_seed': seed,
-                                                                    'exploration_steps': exploration_steps}),
-        ]
         self.ros = RosHarness()
         node = self.node = self.ros.node('wall_experimenter')
         self.status: Optional[ControllerStatus] = None
@@ -91,10 +93,31 @@ class WallGraph:
         self.last_pose: Optional[tuple] = None
         self.samples = 0
         self.state_stamp: Optional[int] = None
+        self.episode_from = 0
+        self.recent_odom: Deque[tuple] = deque(maxlen=100)
+        self.recent_states: Deque[ManifoldState] = deque(maxlen=100)
+        self.sensor1_samples: List[tuple] = []       # every in-range sensor-1 reading seen (for Fig. 7)
         node.create_subscription(ControllerStatus, 'wheeled/controller/status', self._on_status, LOOP_QOS)
         node.create_subscription(Odometry, 'wheeled/ground_truth/odom', self._on_odom, LOOP_QOS)
         node.create_subscription(ManifoldState, 'wheeled/manifold/state', self._on_state, LOOP_QOS)
         self.goal_pub = node.create_publisher(SensorGoal, 'wheeled/goal', LATCHED_QOS)
+        self.nodes = []
+        sim_time = {'use_sim_time': True}
+        steps = [
+            ('mm_sim', 'wheeled_sim', {'dt': dt, 'noise_range_fraction': noise_range_fraction, 'dropout': dropout,
+                                       'random_seed': seed, 'republish_period': 0.5},
+             ['/wheeled/range/front_center', '/wheeled/range/side_rear', '/wheeled/ground_truth/odom']),
+            ('mm_manifold', 'sensor_manifold', {**sim_time, 'dt': dt, 'learn_after': exploration_steps,
+                                                'model_path': str(model_path)},
+             ['/wheeled/manifold/state', '/wheeled/manifold/jacobian']),
+            ('mm_planner', 'switching_controller', {**sim_time, 'dt': dt, 'random_seed': seed,
+                                                    'exploration_steps': exploration_steps}, []),
+        ]
+        for package, executable, parameters, topics in steps:
+            self.nodes.append(self.graph.start(package, executable, parameters))
+            if recorder and topics:
+                self.spin_until(lambda: all(any(i.node_name == recorder for i in node.get_subscriptions_info_by_topic(t))
+                                            for t in topics), 60.0, f'{recorder} to subscribe to {topics}')
         self.reset_client = node.create_client(ResetPose, 'wheeled/reset')
 
     # --- callbacks (evaluation side) --------------------------------------------------------------------------------
@@ -104,20 +127,20 @@ class WallGraph:
     def _on_odom(self, msg: Odometry) -> None:
         q = msg.pose.pose.orientation
         self.last_pose = (msg.pose.pose.position.x, msg.pose.pose.position.y, 2 * math.atan2(q.z, q.w))
-        if self.episode is not None:
+        self.recent_odom.append((_ns(msg.header.stamp), self.last_pose))
+        if self.episode is not None and _ns(msg.header.stamp) >= self.episode_from:
             self.episode.poses.append(self.last_pose)
 
     def _on_state(self, msg: ManifoldState) -> None:
         self.samples = msg.samples
         self.state_stamp = _ns(msg.header.stamp)
-        if self.episode is not None:
-            flags = list(msg.in_range)
-            self.episode.blind.append(not all(flags[:3]) and not all(flags[3:]))
-            self.episode.spaces.append(int(msg.active_space))
-            self.episode.coordinates.append(list(msg.coordinates))
-            self.episode.sensor1.append(list(msg.sensor1))
-            self.episode.sensor2.append(list(msg.sensor2))
+        self.recent_states.append(msg)
+        if all(msg.in_range[:3]):
+            self.sensor1_samples.append(tuple(msg.sensor1))
+        if self.episode is not None and self.state_stamp >= self.episode_from:
+            self.episode.add_state(msg)
 
+    # --- experiment steps -------------------------------------------------------------------------------------------
     # --- experiment steps -------------------------------------------------------------------------------------------
     def _check_alive(self) -> None:
         for n in self.nodes:
@@ -139,13 +162,15 @@ class WallGraph:
                         and self.status.phase == ControllerStatus.PHASE_WAITING_FOR_GOAL, timeout,
                         'exploration and learning')
 
-    def reset(self, pose: Sequence[float]) -> None:
+    def reset(self, pose: Sequence[float]) -> int:
+        """Teleport the robot; returns the stamp [ns] of the step the reset produced."""
         self.spin_until(lambda: self.reset_client.service_is_ready(), 30.0, 'the reset service')
         future = self.reset_client.call_async(ResetPose.Request(x=float(pose[0]), y=float(pose[1]),
                                                                 theta=float(pose[2])))
         self.spin_until(future.done, 30.0, 'the reset')
         if not future.result().success:
             raise RuntimeError(future.result().message)
+        return _ns(future.result().stamp)
 
     def run_episode(self, start: Sequence[float], goal_reading: Sequence[float], tolerance: float,
                     timeout: float = 300.0) -> GraphEpisode:
@@ -156,17 +181,22 @@ class WallGraph:
         # Reset first: the loop is paused (the controller answers no state between tasks), the reset produces the
         # episode's first readings, and once the controller has seen them the goal makes it answer exactly that
         # state - one command in flight, as lockstep requires.
-        self.episode = GraphEpisode()
-        seen = self.samples
-        self.reset(start)
-        self.spin_until(lambda: self.samples > seen and self.state_stamp is not None, 30.0, 'the first state')
-        first = self.state_stamp
+        self.episode = None
+        first = self.reset(start)
+        # Record from the reset's own step on (its messages may have arrived before the service response).
+        self.episode_from = first
+        self.episode = GraphEpisode(poses=[p for stamp, p in self.recent_odom if stamp >= first])
+        for msg in self.recent_states:
+            if _ns(msg.header.stamp) >= first:
+                self.episode.add_state(msg)
+        self.spin_until(lambda: self.state_stamp is not None and self.state_stamp >= first, 30.0, 'the first state')
         self.spin_until(lambda: self.status is not None and _ns(self.status.header.stamp) >= first, 30.0,
                         'the controller to see the first state')
         goal.header.stamp = self.node.get_clock().now().to_msg()
-        self.status = None
         self.goal_pub.publish(goal)
-        self.spin_until(lambda: self.status is not None and self.status.phase in DONE, timeout, 'the episode')
+        goal_ns = _ns(goal.header.stamp)
+        self.spin_until(lambda: self.status is not None and _ns(self.status.goal_stamp) == goal_ns
+                        and self.status.phase in DONE, timeout, 'the episode')
         episode, self.episode = self.episode, None
         episode.phase, episode.detail = self.status.phase, self.status.detail
         episode.wall_seconds = time.monotonic() - began

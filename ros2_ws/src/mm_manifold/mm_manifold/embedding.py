@@ -8,6 +8,7 @@ from typing import Dict, Optional, Sequence, Tuple
 import numpy as np
 from sklearn.decomposition import PCA
 from sklearn.manifold import LocallyLinearEmbedding
+from threadpoolctl import threadpool_limits
 
 
 class ImageEmbedding:
@@ -125,17 +126,27 @@ class ContactSphere:
     metric='mahalanobis' measures distance in the whitened frame of the contact samples (an ellipsoid): an
     embedding needs not keep the contact region round, and an ellipsoid follows its elongation with 6 more numbers.
 
-    Parameters: radius (fixed; skips validation), radius_grid, criterion, metric ('euclidean' as in the paper or
-    'mahalanobis'), validation_fraction, random_state.
-    Learned attributes: centre_, radius_, whitening_ (identity for 'euclidean'), validation_ (confusion on the
-    held-out split at radius_, or None).
+    A radius can also be given relative to the spread of the contact samples (`relative_radius`: radius = that many
+    times the RMS distance of the contact samples from the centre, in the metric's frame). The relative radius does
+    not change when an embedding is refitted on other frames (LLE coordinates come out rotated and rescaled), so it
+    is what cross-validation over refitted embeddings chooses (see select_contact_model).
+
+    Parameters: radius (fixed; skips validation), relative_radius (fixed, in units of spread_; skips validation),
+    radius_grid, criterion, metric ('euclidean' as in the paper or 'mahalanobis'), validation_fraction, random_state.
+    Learned attributes: centre_, radius_, whitening_ (identity for 'euclidean'), spread_ (RMS distance of the
+    contact samples from centre_), validation_ (confusion on the held-out split at radius_, or None).
     """
 
     def __init__(self, radius: Optional[float] = None, radius_grid: Optional[Sequence[float]] = None,
                  criterion: str = 'youden', metric: str = 'euclidean', validation_fraction: float = 0.3,
-                 random_state: Optional[int] = 0):
+                 random_state: Optional[int] = 0, relative_radius: Optional[float] = None):
         if radius is not None and not radius > 0:
             raise ValueError('radius must be positive')
+        if relative_radius is not None and not relative_radius > 0:
+            raise ValueError('relative_radius must be positive')
+        if radius is not None and relative_radius is not None:
+            raise ValueError('give radius or relative_radius, not both')
+        self.relative_radius = relative_radius
         if criterion not in ('youden', 'balanced_accuracy'):
             raise ValueError("criterion must be 'youden' or 'balanced_accuracy'")
         if metric not in ('euclidean', 'mahalanobis'):
@@ -169,6 +180,8 @@ class ContactSphere:
         self.validation_ = None
         if self.radius is not None:
             self.radius_ = float(self.radius)
+        elif self.relative_radius is not None:
+            self.radius_ = None        # set below from the spread of all contact samples
         else:
             rng = np.random.default_rng(self.random_state)
             val = np.zeros(len(c), bool)
@@ -190,6 +203,10 @@ class ContactSphere:
             self.radius_ = best_r
             self.validation_ = confusion(d_val <= best_r, c[val])
         self.centre_, self.whitening_ = self._shape(Y[c])
+        d_contact = np.linalg.norm((Y[c] - self.centre_) @ self.whitening_.T, axis=1)
+        self.spread_ = max(float(np.sqrt(np.mean(d_contact ** 2))), 1e-12)
+        if self.radius_ is None:
+            self.radius_ = float(self.relative_radius) * self.spread_
         return self
 
     def distance(self, Y: np.ndarray) -> np.ndarray:
@@ -208,6 +225,193 @@ class ContactSphere:
     def closeness(self, Y: np.ndarray) -> np.ndarray:
         """1 - distance / radius: 1 at the contact centre, 0 on the sphere, negative outside."""
         return 1.0 - self.distance(Y) / self.radius_
+
+
+def quadratic_features(Z: np.ndarray) -> np.ndarray:
+    """[z_1 .. z_k, z_i z_j for i <= j] per row: the monomials of a quadric in k dimensions (without the constant)."""
+    Z = np.array(Z, dtype=float, ndmin=2)
+    iu = np.triu_indices(Z.shape[1])
+    return np.hstack([Z, Z[:, iu[0]] * Z[:, iu[1]]])
+
+
+class ContactQuadric:
+    """Collision prediction in an embedding: on the contact side of a quadric surface, {y : f(y) >= threshold}.
+
+    f(y) = b + w . z + z^T A z on the standardised coordinates z = (y - mean_) / std_ is fitted to separate the
+    contact from the no-contact samples by L2-regularised logistic regression (strength 1/C, balanced class
+    weights), so f is the log-odds of contact with both classes weighted equally. The paper's sphere (centre = mean
+    of the contact samples, radius set for the best discrimination) and the Mahalanobis ellipsoid are quadrics
+    too, with the same number of free coefficients as the ellipsoid (10 in 3-D), but their centre and shape are
+    fixed by the contact samples' mean and covariance, not by where the contact / no-contact boundary lies. The
+    fitted quadric need not be closed: in a 3-D embedding of the arm's 2-D image manifold the frames lie on a curved
+    surface, and the contact patch on it is cut out best by whatever quadric meets the surface along the patch's
+    edge (often a hyperboloid). Like any decision boundary it means nothing far outside the frames' range, and an
+    out-of-sample LLE frame lands among training frames.
+
+    Closeness (for planning margins and the closeness map) is (f - threshold) / depth_: 0 on the surface, negative
+    outside, 1 at the median contact sample (depth_ = median f of the contact samples - threshold), the analogue of
+    the sphere's 1 - distance / radius (0 on the sphere, 1 at its centre).
+
+    Parameters: C (inverse regularisation), threshold (on f, 0 = equal odds), max_iter, random_state.
+    Learned attributes: mean_, std_, coef_ (k + k(k+1)/2,), intercept_, threshold_, depth_.
+    """
+
+    def __init__(self, C: float = 100.0, threshold: float = 0.0, max_iter: int = 10000,
+                 random_state: Optional[int] = 0):
+        if not C > 0 or not np.isfinite(threshold):
+            raise ValueError('C must be positive and threshold finite')
+        self.C = float(C)
+        self.threshold = float(threshold)
+        self.max_iter = int(max_iter)
+        self.random_state = random_state
+
+    def fit(self, Y: np.ndarray, contact: Sequence[bool]) -> 'ContactQuadric':
+        from sklearn.linear_model import LogisticRegression
+        Y = np.array(Y, dtype=float, ndmin=2)
+        c = np.asarray(contact, dtype=bool).ravel()
+        if len(Y) != len(c):
+            raise ValueError('Y and contact must have the same length')
+        if not np.all(np.isfinite(Y)):
+            raise ValueError('Y must be finite')
+        if c.sum() < 2 or (~c).sum() < 2:
+            raise ValueError('need at least two contact and two no-contact samples')
+        self.mean_ = Y.mean(axis=0)
+        self.std_ = np.maximum(Y.std(axis=0), 1e-12)
+        lr = LogisticRegression(C=self.C, class_weight='balanced', max_iter=self.max_iter,
+                                random_state=self.random_state)
+        with threadpool_limits(1):      # 10 features: thread hand-off costs more than it saves
+            lr.fit(quadratic_features((Y - self.mean_) / self.std_), c)
+        self.coef_ = lr.coef_[0].copy()
+        self.intercept_ = float(lr.intercept_[0])
+        self.threshold_ = self.threshold
+        f = self.decision(Y)
+        self.depth_ = max(float(np.median(f[c])) - self.threshold_, 1e-3 * float(np.std(f)) + 1e-12)
+        return self
+
+    def decision(self, Y: np.ndarray) -> np.ndarray:
+        """f(y): log-odds of contact (balanced classes)."""
+        if not hasattr(self, 'coef_'):
+            raise RuntimeError('ContactQuadric is not fitted')
+        Y = np.array(Y, dtype=float, ndmin=2)
+        if Y.shape[1] != self.mean_.shape[0]:
+            raise ValueError(f'expected {self.mean_.shape[0]} columns, got {Y.shape[1]}')
+        return quadratic_features((Y - self.mean_) / self.std_) @ self.coef_ + self.intercept_
+
+    def predict(self, Y: np.ndarray) -> np.ndarray:
+        """True on the contact side of the quadric (collision predicted)."""
+        return self.decision(Y) >= self.threshold_
+
+    def closeness(self, Y: np.ndarray) -> np.ndarray:
+        """(f(y) - threshold) / depth_: 0 on the surface, 1 at the median contact sample, negative outside."""
+        return (self.decision(Y) - self.threshold_) / self.depth_
+
+
+REGION_MODELS = ('sphere', 'ellipsoid', 'quadric')
+
+
+def best_threshold(score: np.ndarray, label: np.ndarray) -> Tuple[float, Dict[str, float]]:
+    """Threshold t on `score` (predict score >= t) with the largest TPR - FPR; among equally good thresholds the
+    middle one. Candidates lie half-way between consecutive distinct scores. Returns t and the confusion there."""
+    score = np.asarray(score, dtype=float)
+    label = np.asarray(label, dtype=bool)
+    u = np.unique(score)
+    cand = np.r_[u[0] - 1.0, 0.5 * (u[1:] + u[:-1]), u[-1] + 1.0] if len(u) > 1 else np.array([u[0]])
+    pos, neg = np.sort(score[label]), np.sort(score[~label])
+    tpr = 1.0 - np.searchsorted(pos, cand, side='left') / max(len(pos), 1)
+    fpr = 1.0 - np.searchsorted(neg, cand, side='left') / max(len(neg), 1)
+    j = tpr - fpr
+    best = np.flatnonzero(j >= j.max() - 1e-12)
+    t = float(cand[best[len(best) // 2]])
+    return t, confusion(score >= t, label)
+
+
+def _region_score(model: str, Y_fit: np.ndarray, c_fit: np.ndarray, Y_eval: np.ndarray, C: Optional[float],
+                  random_state) -> np.ndarray:
+    """Contact score of Y_eval under a region fitted on (Y_fit, c_fit); higher = more contact-like, comparable
+    across refitted embeddings: minus the distance in units of the contact spread (sphere, ellipsoid) or the
+    quadric's log-odds."""
+    if model == 'quadric':
+        return ContactQuadric(C=C, random_state=random_state).fit(Y_fit, c_fit).decision(Y_eval)
+    metric = 'euclidean' if model == 'sphere' else 'mahalanobis'
+    s = ContactSphere(relative_radius=1.0, metric=metric, random_state=random_state).fit(Y_fit, c_fit)
+    return -s.distance(Y_eval) / s.spread_
+
+
+def select_contact_model(X: np.ndarray, contact: Sequence[bool], method: str = 'lle', n_components: int = 3,
+                         n_neighbors_grid: Sequence[int] = (10, 20, 40), models: Sequence[str] = REGION_MODELS,
+                         C_grid: Sequence[float] = (1.0, 10.0, 100.0, 1000.0), n_folds: int = 5,
+                         embedding_params: Optional[Dict] = None,
+                         random_state: Optional[int] = 0) -> Dict[str, object]:
+    """Choose n_neighbors, the contact region model ('sphere', 'ellipsoid', 'quadric'), its C (quadric) and its
+    threshold (radius) by stratified k-fold cross-validation on training frames only.
+
+    Per fold, the embedding is fitted on the other folds and the fold's frames are embedded out of sample - as
+    held-out frames are later - and every region model is fitted on the other folds' embedding. The out-of-fold
+    scores of all folds are pooled (scores are scale-free, see _region_score) and each candidate's threshold is the
+    one with the largest pooled TPR - FPR (Youden's J); the candidate with the largest J wins (ties: the simpler
+    model, listed first). For PCA n_neighbors plays no role and only the first value is tried.
+    Returns dict(best=<candidate>, candidates=[...]), a candidate being dict(n_neighbors, model, C, threshold,
+    cv_tpr, cv_fpr, cv_youden); for spheres and ellipsoids the relative radius is -threshold.
+    """
+    X = np.asarray(X, dtype=float)
+    c = np.asarray(contact, dtype=bool).ravel()
+    if len(X) != len(c):
+        raise ValueError('X and contact must have the same length')
+    if n_folds < 2 or min(c.sum(), (~c).sum()) < 2 * n_folds:
+        raise ValueError(f'need n_folds >= 2 and at least {2 * n_folds} frames of each class')
+    unknown = set(models) - set(REGION_MODELS)
+    if unknown or not models:
+        raise ValueError(f'models must be among {REGION_MODELS}')
+    rng = np.random.default_rng(random_state)
+    fold = np.empty(len(c), int)
+    for cls in (True, False):
+        idx = rng.permutation(np.flatnonzero(c == cls))
+        fold[idx] = np.arange(len(idx)) % n_folds
+    grid = list(n_neighbors_grid)[:1] if method == 'pca' else list(n_neighbors_grid)
+    keys = [(m, None) if m != 'quadric' else (m, float(C)) for m in models for C in
+            (C_grid if m == 'quadric' else [None])]
+    keys = list(dict.fromkeys(keys))
+    candidates = []
+    for nn in grid:
+        scores = {k: np.empty(len(c)) for k in keys}
+        for f in range(n_folds):
+            tr, va = fold != f, fold == f
+            emb = ImageEmbedding(n_components, nn, method, random_state=random_state, **(embedding_params or {}))
+            with threadpool_limits(1):
+                emb.fit(X[tr])
+                Y_va = emb.transform(X[va])
+                for model, C in keys:
+                    scores[(model, C)][va] = _region_score(model, emb.embedding_, c[tr], Y_va, C, random_state)
+        for model, C in keys:
+            t, conf = best_threshold(scores[(model, C)], c)
+            candidates.append(dict(n_neighbors=int(nn), model=model, C=C, threshold=t, cv_tpr=conf['tpr'],
+                                   cv_fpr=conf['fpr'], cv_youden=conf['tpr'] - conf['fpr']))
+    best = max(candidates, key=lambda k: k['cv_youden'])       # first maximum: simpler model, fewer neighbours
+    return dict(best=best, candidates=candidates)
+
+
+def best_of(selection: Dict[str, object], model: str) -> Dict[str, object]:
+    """The best cross-validated candidate of one region model in a select_contact_model result."""
+    cands = [k for k in selection['candidates'] if k['model'] == model]
+    if not cands:
+        raise ValueError(f'no {model} candidate in the selection')
+    return max(cands, key=lambda k: k['cv_youden'])
+
+
+def fit_contact_model(X: np.ndarray, contact: Sequence[bool], candidate: Dict[str, object], method: str = 'lle',
+                      n_components: int = 3, embedding_params: Optional[Dict] = None, random_state: Optional[int] = 0):
+    """Fit the embedding and the contact region of a cross-validated candidate on all training frames:
+    returns (ImageEmbedding, ContactSphere or ContactQuadric)."""
+    emb = ImageEmbedding(n_components, candidate['n_neighbors'], method, random_state=random_state,
+                         **(embedding_params or {}))
+    with threadpool_limits(1, user_api='blas'):
+        emb.fit(X)
+    if candidate['model'] == 'quadric':
+        region = ContactQuadric(C=candidate['C'], threshold=candidate['threshold'], random_state=random_state)
+    else:
+        region = ContactSphere(relative_radius=max(-candidate['threshold'], 1e-6), random_state=random_state,
+                               metric='euclidean' if candidate['model'] == 'sphere' else 'mahalanobis')
+    return emb, region.fit(emb.embedding_, contact)
 
 
 def synthetic_keypoint_frames(n_frames: int = 1000, n_object: int = 10, n_hand: int = 10, n_background: int = 5,

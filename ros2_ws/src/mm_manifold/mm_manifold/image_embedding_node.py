@@ -8,12 +8,13 @@ Subscribes only to what the robot senses: `arm/camera/image_raw` (sensor_msgs/Im
 Every image: SIFT keypoints (mm_manifold.keypoints). A frame whose joint state and touch reading of the same stamp
 have arrived joins the training set. When `min_training_frames` frames are in, a background thread fits
 mm_manifold.arm_learning.ArmStateLearner (keypoint labels, nearest-neighbour imputation, 3-D LLE and PCA, the
-contact sphere with a validated radius, the collision map on the joint grid); it refits after every
+contact region - sphere, ellipsoid or quadric - with a cross-validated radius, the collision map on the joint grid);
+it refits after every
 `refit_every` further frames. Callbacks never wait for a fit: the new model is swapped in by the next callback.
 Publishes `arm/embedding/state` (mm_msgs/EmbeddingState) for every image - with `model_ready` false before the first
 fit, so a lockstep explorer can pace itself on it - and `arm/embedding/collision_map` (mm_msgs/CollisionMap,
 TRANSIENT_LOCAL so a late planner gets the latest map) after each fit. How a cell is predicted: see
-mm_manifold.arm_learning (share of the cell's training frames whose sphere closeness is at least -map_margin).
+mm_manifold.arm_learning (share of the cell's training frames whose region closeness is at least -map_margin).
 
 With `model_path` set, each fitted model is written there atomically (np.savez + JSON, no pickle) and loaded at start;
 an unreadable file is logged as an error and the node learns again from scratch.
@@ -94,16 +95,16 @@ class ImageEmbeddingNode(Node):
                                  read_only=True),
             n_neighbors=declare(self, 'n_neighbors', 20, 'LLE neighbours', min_value=3, max_value=200,
                                 read_only=True),
-            sphere_metric=declare(self, 'sphere_metric', 'euclidean', "Contact region: 'euclidean' sphere (paper) "
-                                  "or 'mahalanobis' ellipsoid", read_only=True,
-                                  additional_constraints='one of euclidean, mahalanobis'),
+            region=declare(self, 'contact_region', 'auto', "Contact region in the LLE space: 'sphere' (paper), "
+                           "'ellipsoid', 'quadric', or 'auto' (chosen by cross-validation)", read_only=True,
+                           additional_constraints='one of auto, sphere, ellipsoid, quadric'),
             cell_min_frames=declare(self, 'cell_min_frames', 3, 'Frames per cell (nearest ones fill up)',
                                     min_value=1, max_value=1000),
             cell_collision_fraction=declare(self, 'cell_collision_fraction', 0.1,
                                             'Share of a cell\'s frames predicted as collision that marks the cell',
                                             min_value=0.001, max_value=1.0),
-            map_margin=declare(self, 'map_margin', 0.3, 'Frames with closeness >= -map_margin count as collision '
-                               'for the map (sphere inflated by this share for planning)', min_value=0.0,
+            map_margin=declare(self, 'map_margin', 0.1, 'Frames with closeness >= -map_margin count as collision '
+                               'for the map (region inflated by this share for planning)', min_value=0.0,
                                max_value=5.0),
             grid_shape=(declare(self, 'grid_rows', 8, 'Joint grid rows (joint 0)', min_value=1, max_value=200,
                                 read_only=True),
@@ -335,11 +336,11 @@ class ImageEmbeddingNode(Node):
             return
         self.model = learner
         self.fits_done += 1
-        v = learner.sphere_.validation_ or {}
+        v = learner.selection_
         self.get_logger().info(
             f'fit {self.fits_done}: {learner.n_frames_} frames, {learner.vectorizer_.n_labels_} labels, '
-            f'{int(learner.train_contact_.sum())} contact frames, sphere radius {learner.sphere_.radius_:.4f} '
-            f"(validation TPR {v.get('tpr', float('nan')):.3f} FPR {v.get('fpr', float('nan')):.3f}), "
+            f"{int(learner.train_contact_.sum())} contact frames, contact region {v['model']} "
+            f"(cross-validated TPR {v['cv_tpr']:.3f} FPR {v['cv_fpr']:.3f}), "
             f'{int(learner.collision_map_.sum())} collision cells')
         self._publish_map(learner)
         self._maybe_fit()

@@ -352,8 +352,11 @@ class KeypointVectorizer:
         m = inv.max() + 1
         cnt = np.bincount(inv, minlength=m).astype(float)
         ex_pos = np.stack([np.bincount(inv, pos[:, d], m) for d in range(2)], 1) / cnt[:, None]
-        ex_desc = np.zeros((m, desc.shape[1]))
-        np.add.at(ex_desc, inv, desc)
+        # per-exemplar descriptor sums (np.add.at is slow; a stable sort keeps the summation order, so the sums are
+        # the same as np.add.at's)
+        order = np.argsort(inv, kind='stable')
+        starts = np.flatnonzero(np.r_[True, np.diff(inv[order]) != 0])
+        ex_desc = np.add.reduceat(desc[order].astype(np.float64), starts, axis=0)
         ex_desc /= np.maximum(np.linalg.norm(ex_desc, axis=1, keepdims=True), 1e-9)
         ex_lab = np.zeros(m, int)
         ex_lab[inv] = lab

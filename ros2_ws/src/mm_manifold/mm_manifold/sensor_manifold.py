@@ -12,6 +12,8 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import zipfile
+import zlib
 from pathlib import Path
 from typing import List, Optional, Tuple
 
@@ -170,7 +172,7 @@ class SensorManifoldModel:
             with np.load(path, allow_pickle=False) as data:
                 meta = json.loads(str(data['meta']))
                 arrays = {k: data[k] for k in data.files if k != 'meta'}
-        except (OSError, ValueError, KeyError, json.JSONDecodeError, EOFError) as exc:
+        except (OSError, ValueError, KeyError, json.JSONDecodeError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
             raise ValueError(f'cannot read model {path}: {exc}') from exc
         if meta.get('format_version') != FORMAT_VERSION:
             raise ValueError(f"model {path}: format {meta.get('format_version')} != {FORMAT_VERSION}")
@@ -230,12 +232,21 @@ class StateTracker:
     the commands actually sent; sensor 2 in range takes precedence for control (the paper's switch). When sensor 2
     drops out of range after having been in range, its reading is continued with the learned sensor-2 field for up
     to `sensor2_hold_steps` (a short virtual sensor 2), so a manoeuvre near its range edge does not flip the space.
+
+    Noisy readings: while a group stays in range, its state is a blend of the learned-Jacobian prediction from the
+    previous state and the command, and the new measurement (`measurement_gain` of the latter; 1 = raw readings).
+    The default 1 keeps the readings as they are (blending cost precision on clean readings in our trials); a lost reading
+    (bridged with its last value) contributes no measurement, only the prediction.
     """
 
-    def __init__(self, model: SensorManifoldModel, hold_steps: int = 3, sensor2_hold_steps: int = 20):
+    def __init__(self, model: SensorManifoldModel, hold_steps: int = 3, sensor2_hold_steps: int = 20,
+                 measurement_gain: float = 1.0):
+        if not 0.0 < measurement_gain <= 1.0:
+            raise ValueError(f'measurement_gain must be in (0, 1], got {measurement_gain}')
         self.model = model
         self.hold_steps = hold_steps
         self.sensor2_hold_steps = sensor2_hold_steps
+        self.measurement_gain = measurement_gain
         self.reset()
 
     def reset(self) -> None:
@@ -257,18 +268,30 @@ class StateTracker:
 
     def update(self, readings: np.ndarray, last_command: Optional[np.ndarray]):
         """Returns (space, coordinates, sensor-2 reading (measured or continued) or None, filtered readings)."""
+        lost = np.isnan(np.asarray(readings, dtype=float))
         r = self.filtered(readings)
         in1 = bool(group_in_range(r, SENSOR1)[0])
         in2 = bool(group_in_range(r, SENSOR2)[0])
         command = None if last_command is None else np.asarray(last_command, dtype=float)
+        k = self.measurement_gain
         if in1:
-            self.coordinates = self.model.grid_.transform(r[list(SENSOR1)][None])[0]
+            measured = self.model.grid_.transform(r[list(SENSOR1)][None])[0]
+            if self.coordinates is not None and self.virtual_steps == 0 and command is not None:
+                predicted = self.model.virtual_.step(self.coordinates, command)
+                gain = 0.0 if lost[list(SENSOR1)].any() else k
+                measured = predicted + gain * (measured - predicted)
+            self.coordinates = measured
             self.virtual_steps = 0
         elif self.coordinates is not None and command is not None:
             self.coordinates = self.model.virtual_.step(self.coordinates, command)
             self.virtual_steps += 1
         if in2:
-            self.sensor2 = r[list(SENSOR2)].copy()
+            measured = r[list(SENSOR2)].copy()
+            if (self.sensor2 is not None and self.sensor2_virtual_steps == 0 and command is not None
+                    and self.model.field2_ is not None):
+                predicted = self.sensor2 + self.model.field2_.rates(self.sensor2[None], command[None])[0] * self.model.dt
+                measured = predicted + np.where(lost[list(SENSOR2)], 0.0, k) * (measured - predicted)
+            self.sensor2 = measured
             self.sensor2_virtual_steps = 0
         elif (self.sensor2 is not None and command is not None and self.model.field2_ is not None
               and self.sensor2_virtual_steps < self.sensor2_hold_steps):

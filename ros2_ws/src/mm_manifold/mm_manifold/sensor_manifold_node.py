@@ -3,8 +3,10 @@
     ./mm run mm_manifold sensor_manifold --ros-args -p use_sim_time:=true -p model_path:=results/wall_model.npz
 
 Inputs (what the robot senses and commands, nothing else): the five `wheeled/range/*` readings, grouped by stamp
-into one sample per simulator step, and its own `wheeled/wheel_velocity_controller/commands`. A sample that does not follow exactly one command (a reset, a
-lost command) breaks the chain of consecutive samples: it is not used as a Jacobian pair and the state tracker starts
+into one sample per simulator step, and its own `wheeled/wheel_velocity_controller/commands`. The command that moved
+the robot to a sample travels on another topic and may arrive after the sample's readings, so a sample with no command
+yet waits for it up to `command_wait` wall seconds. A sample that does not follow exactly one command (a reset, a lost
+command) breaks the chain of consecutive samples: it is not used as a Jacobian pair and the state tracker starts
 afresh from it.
 
 After `learn_after` samples the SensorManifoldModel (dimension, elastic grid, Jacobians, virtual sensor space) is
@@ -56,6 +58,9 @@ class SensorManifold(Node):
                                   'persisted)', read_only=True)
         self.hold_steps = declare(self, 'hold_steps', 3, 'Lost (NaN) readings bridged with the last value for '
                                   'this many steps', min_value=0, max_value=100)
+        self.command_wait = declare(self, 'command_wait', 0.2, 'Wall seconds a sample waits for the command that '
+                                    'produced it before it counts as a break in the chain', min_value=0.0,
+                                    max_value=5.0)
         if len(self.grid_shape) != 2 or min(self.grid_shape) < 3:
             raise ValueError('grid_shape must be [rows, cols], each >= 3')
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -65,7 +70,7 @@ class SensorManifold(Node):
         self.continuous: List[bool] = []
         self.pending: Dict[int, List[float]] = {}
         self.commands_since_sample: List[np.ndarray] = []
-        self.last_command: Optional[np.ndarray] = None
+        self.waiting: Optional[tuple] = None      # (reading, stamp, steady time) of a sample waiting for its command
         self.rejected = 0
         self.model: Optional[SensorManifoldModel] = None
         self.tracker: Optional[StateTracker] = None
@@ -81,8 +86,11 @@ class SensorManifold(Node):
                                      lambda msg, i=index: self._on_range(i, msg), LOOP_QOS)
         self.create_subscription(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands', self._on_command,
                                  LOOP_QOS)
-        # Wall-clock timer: with use_sim_time the sim clock stands still while the loop waits for the model.
-        self.create_timer(0.2, self._collect_fit, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        # Wall-clock timers: with use_sim_time the sim clock stands still while the loop waits (for the model, or
+        # for the command of a waiting sample).
+        self.steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(0.2, self._collect_fit, clock=self.steady)
+        self.create_timer(0.02, self._expire_waiting, clock=self.steady)
         self._load()
 
     def _on_set_parameters(self, params) -> SetParametersResult:
@@ -93,6 +101,8 @@ class SensorManifold(Node):
                     return SetParametersResult(successful=False, reason='dt can only be set at start-up')
                 if p.name in ('learn_after', 'refit_every', 'hold_steps'):
                     setattr(self, p.name, int(p.value))
+                if p.name == 'command_wait':
+                    self.command_wait = float(p.value)
         return result
 
     # --- model lifecycle ----------------------------------------------------------------------------------------
@@ -159,6 +169,17 @@ class SensorManifold(Node):
         if data.shape != (2,) or not np.all(np.isfinite(data)):
             return          # the simulator rejects it too: it did not move the robot
         self.commands_since_sample.append(data)
+        if self.waiting is not None:
+            reading, stamp, _ = self.waiting
+            self.waiting = None
+            self._on_sample(reading, stamp)
+
+    def _expire_waiting(self) -> None:
+        """Timer: a sample whose command never came (a reset, a republished step) is taken as a chain break."""
+        if self.waiting is not None and (self.steady.now().nanoseconds - self.waiting[2]) * 1e-9 >= self.command_wait:
+            reading, stamp, _ = self.waiting
+            self.waiting = None
+            self._on_sample(reading, stamp)
 
     def _on_range(self, index: int, msg: Range) -> None:
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
@@ -169,7 +190,14 @@ class SensorManifold(Node):
             del self.pending[stamp]
             for old in [s for s in self.pending if s < stamp]:   # incomplete older steps never complete
                 del self.pending[old]
-            self._on_sample(np.asarray(values[:5], dtype=float), msg.header.stamp)
+            reading = np.asarray(values[:5], dtype=float)
+            if self.waiting is not None:             # the earlier sample's command will not come any more
+                waiting, self.waiting = self.waiting, None
+                self._on_sample(*waiting[:2])
+            if self.readings and not self.commands_since_sample and self.command_wait > 0:
+                self.waiting = (reading, msg.header.stamp, self.steady.now().nanoseconds)
+            else:
+                self._on_sample(reading, msg.header.stamp)
 
     def _on_sample(self, reading: np.ndarray, stamp) -> None:
         # One command between two samples is the lockstep contract; anything else (reset, lost command) breaks

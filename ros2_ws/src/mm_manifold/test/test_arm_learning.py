@@ -4,18 +4,25 @@ import pytest
 
 from mm_manifold.arm_evaluation import sample_exploration_joints
 from mm_manifold.arm_learning import ArmStateLearner, ModelFileError, cell_map
+from mm_manifold.embedding import ContactQuadric, ContactSphere
 from mm_manifold.keypoints import KeypointExtractor
 from mm_sim.arm_model import ArmModel
 
 
 @pytest.fixture(scope='module')
-def fitted():
+def frames():
     model = ArmModel(random_state=2)
     rng = np.random.default_rng(2)
     joints = sample_exploration_joints(model, 260, rng=rng)
     contact = np.array([model.in_contact(q) for q in joints])
     ext = KeypointExtractor()
     kps = [ext(model.render(q)) for q in joints]
+    return kps, joints, contact
+
+
+@pytest.fixture(scope='module')
+def fitted(frames):
+    kps, joints, contact = frames
     learner = ArmStateLearner(random_state=0).fit(kps[:220], joints[:220], contact[:220], np.arange(220) * 10)
     return learner, kps[220:], contact[220:]
 
@@ -87,3 +94,25 @@ def test_fit_needs_contact_and_no_contact_frames(fitted):
         ArmStateLearner().fit(kps, np.zeros((30, 2)) - 1.0, np.zeros(30, bool))
     with pytest.raises(ValueError):
         ArmStateLearner(joint_limits=((0, -1), (0, 1)))
+
+
+@pytest.mark.parametrize('region', ['sphere', 'ellipsoid', 'quadric'])
+def test_each_contact_region_predicts_and_survives_saving(frames, region, tmp_path):
+    kps, joints, contact = frames
+    learner = ArmStateLearner(region=region, random_state=0).fit(kps[:220], joints[:220], contact[:220])
+    assert learner.selection_['model'] == region == learner.pca_selection_['model']
+    assert isinstance(learner.region_, ContactQuadric if region == 'quadric' else ContactSphere)
+    # the cross-validated threshold puts the region's surface at closeness 0
+    np.testing.assert_array_equal(learner.train_predicted_, learner.train_closeness_ >= -1e-12)
+    pred = np.array([learner.transform(k)['collision'] for k in kps[220:]])
+    assert np.mean(pred == contact[220:]) > 0.75
+    learner.save(tmp_path / 'm.npz')
+    loaded = ArmStateLearner.load(tmp_path / 'm.npz')
+    assert loaded.region == region and loaded.selection_ == learner.selection_
+    np.testing.assert_allclose(loaded.train_closeness_, learner.train_closeness_, atol=1e-12)
+    np.testing.assert_array_equal(loaded.collision_map_, learner.collision_map_)
+    for k in kps[220:225]:
+        a, b = learner.transform(k), loaded.transform(k)
+        assert a['collision'] == b['collision'] and a['closeness'] == pytest.approx(b['closeness'], abs=1e-12)
+    with pytest.raises(ValueError):
+        ArmStateLearner(region='cube')

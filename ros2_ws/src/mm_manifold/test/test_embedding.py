@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 from scipy.stats import spearmanr
 
-from mm_manifold.embedding import (ContactSphere, ImageEmbedding, confusion, format_confusion,
-                                   synthetic_keypoint_frames)
+from mm_manifold.embedding import (ContactQuadric, ContactSphere, ImageEmbedding, best_of, best_threshold,
+                                   confusion, fit_contact_model, format_confusion, quadratic_features,
+                                   select_contact_model, synthetic_keypoint_frames)
 from mm_manifold.keypoints import NearestImputer
 
 
@@ -78,3 +79,81 @@ def test_synthetic_keypoints_lle_coordinate_follows_hand_object_distance():
     rho = max(abs(spearmanr(Y[:, i], d)[0]) for i in range(3))
     # Measured 0.93 with this seed (static object; one LLE axis runs away from the object).
     assert rho > 0.85
+
+
+def test_relative_radius_is_a_multiple_of_the_contact_spread():
+    rng = np.random.default_rng(3)
+    Y = np.vstack([rng.normal([2.0, 0.0, 0.0], 0.5, (80, 3)), rng.normal(0.0, 2.0, (300, 3))])
+    c = np.r_[np.ones(80, bool), np.zeros(300, bool)]
+    for metric in ('euclidean', 'mahalanobis'):
+        s = ContactSphere(relative_radius=1.5, metric=metric).fit(Y, c)
+        d = s.distance(Y[c])
+        assert s.spread_ == pytest.approx(np.sqrt(np.mean(d ** 2)))
+        assert s.radius_ == pytest.approx(1.5 * s.spread_)
+        assert s.validation_ is None
+    # rotating and scaling the embedding (what a refit of LLE does) leaves the relative prediction unchanged
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    a = ContactSphere(relative_radius=1.2).fit(Y, c).predict(Y)
+    b = ContactSphere(relative_radius=1.2).fit(7.0 * Y @ q, c).predict(7.0 * Y @ q)
+    np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError):
+        ContactSphere(radius=1.0, relative_radius=1.0)
+
+
+def test_best_threshold_maximises_youden():
+    score = np.array([0.1, 0.2, 0.3, 0.9, 0.8, 0.35])
+    label = np.array([False, False, False, True, True, True])
+    t, conf = best_threshold(score, label)
+    assert 0.3 < t < 0.35
+    assert conf['tpr'] == 1.0 and conf['fpr'] == 0.0
+
+
+def _curved_patch_data(n, seed):
+    """Frames on a curved 2-D surface in 3-D (like a 3-D embedding of the arm's 2-D image manifold); contact = a
+    disc of the surface's own coordinates, which no sphere around the contact mean cuts out cleanly."""
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(-1, 1, (n, 2))
+    near = rng.random(n) < 0.3
+    u[near] = rng.normal([0.3, 0.0], 0.15, (near.sum(), 2))
+    Y = np.stack([u[:, 0], u[:, 1], 1.5 * u[:, 0] ** 2 - 0.8 * u[:, 1] ** 2], 1)
+    return Y, np.linalg.norm((u - [0.3, 0.0]) * [1.0, 0.4], axis=1) < 0.15
+
+
+def test_contact_quadric_cuts_a_patch_out_of_a_curved_surface():
+    Y, c = _curved_patch_data(1500, 0)
+    Yt, ct = _curved_patch_data(800, 1)
+    quad = ContactQuadric(C=100.0).fit(Y, c)
+    q = confusion(quad.predict(Yt), ct)
+    sphere = ContactSphere().fit(Y, c)
+    s = confusion(sphere.predict(Yt), ct)
+    assert q['tpr'] - q['fpr'] > 0.9
+    assert q['tpr'] - q['fpr'] > s['tpr'] - s['fpr']
+    close = quad.closeness(Y)
+    np.testing.assert_array_equal(close >= 0, quad.predict(Y))
+    assert np.median(close[c]) == pytest.approx(1.0)
+    assert quad.coef_.shape == (quadratic_features(Y[:1]).shape[1],) == (9,)
+    with pytest.raises(ValueError):
+        ContactQuadric().fit(Y, np.zeros(len(Y), bool))
+
+
+@pytest.mark.parametrize('method', ['pca', 'lle'])
+def test_select_contact_model_cross_validates_on_training_frames(method):
+    Y, c = _curved_patch_data(500, 2)
+    rng = np.random.default_rng(0)
+    X = np.hstack([Y, Y @ rng.normal(size=(3, 5))]) + rng.normal(0, 0.01, (500, 8))   # 8-D vectors, 3-D content
+    sel = select_contact_model(X, c, method=method, n_neighbors_grid=(10, 20), C_grid=(10.0, 100.0), n_folds=4)
+    n_grid = 1 if method == 'pca' else 2
+    assert len(sel['candidates']) == n_grid * (2 + 2)
+    best = sel['best']
+    assert best['cv_youden'] == max(k['cv_youden'] for k in sel['candidates'])
+    assert best_of(sel, 'sphere')['model'] == 'sphere'
+    emb, region = fit_contact_model(X, c, best, method=method)
+    Yt, ct = _curved_patch_data(400, 3)
+    Xt = np.hstack([Yt, Yt @ np.random.default_rng(0).normal(size=(3, 5))])
+    conf = confusion(region.predict(emb.transform(Xt)), ct)
+    assert conf['tpr'] - conf['fpr'] > 0.8
+    sphere_emb, sphere = fit_contact_model(X, c, best_of(sel, 'sphere'), method=method)
+    assert isinstance(sphere, ContactSphere) and sphere.radius_ == pytest.approx(
+        -best_of(sel, 'sphere')['threshold'] * sphere.spread_)
+    with pytest.raises(ValueError):
+        select_contact_model(X, np.zeros(len(X), bool))

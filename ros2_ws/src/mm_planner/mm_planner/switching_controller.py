@@ -27,12 +27,13 @@ class SwitchingController:
     its candidate set, travel_weight (cost of wheel travel relative to the squared goal error), tolerance [m] on each
     sensor-2 reading, settle_steps (consecutive steps within tolerance before stopping), damping of the least-squares
     step, waypoint_tolerance [grid units], turn_speed / drive_speed [rad/s] of the sensor-2 manoeuvres, stall_steps
-    (steps without progress toward the target before aiming at the next fallback)."""
+    (steps without progress toward the target before aiming at the next fallback), max_retries (times the route is
+    restarted from the practised exit when every target was reached blind)."""
 
     def __init__(self, dt: float, max_wheel_speed: float = 6.0, horizon: int = 12,
                  speed_levels=(1.0, 0.4, 0.12, 0.0), travel_weight: float = 1e-3, tolerance: float = 0.01,
-                 settle_steps: int = 2, damping: float = 1e-2, waypoint_tolerance: float = 0.3,
-                 turn_speed: float = 1.5, drive_speed: float = 4.0, stall_steps: int = 20):
+                 settle_steps: int = 4, damping: float = 1e-2, waypoint_tolerance: float = 0.3,
+                 turn_speed: float = 1.5, drive_speed: float = 4.0, stall_steps: int = 20, max_retries: int = 3):
         if dt <= 0 or max_wheel_speed <= 0 or tolerance <= 0 or horizon < 1:
             raise ValueError('dt, max_wheel_speed, tolerance and horizon must be positive')
         self.dt = dt
@@ -44,6 +45,7 @@ class SwitchingController:
         self.damping = damping
         self.waypoint_tolerance = waypoint_tolerance
         self.stall_steps = stall_steps
+        self.max_retries = max_retries
         self._plan: Optional[np.ndarray] = None
         levels = sorted({s * max_wheel_speed * sign for s in speed_levels for sign in (-1, 1)})
         self.candidates = np.array(list(product(levels, levels)), dtype=float)
@@ -52,7 +54,7 @@ class SwitchingController:
         self.goal_sensor2: Optional[np.ndarray] = None
         self.goal_coordinates: Optional[np.ndarray] = None
         self.waypoint: Optional[np.ndarray] = None
-        self.settled = 0
+        self.settled, self._settle_readings = 0, []
 
     @staticmethod
     def _manoeuvres(turn_speed: float, drive_speed: float, turns=(0, 1, 3, 6, 12),
@@ -86,8 +88,10 @@ class SwitchingController:
         self.goal_coordinates = goal_coordinates
         self.waypoint = None if waypoint is None else np.asarray(waypoint, dtype=float)
         self.fallbacks = [] if fallbacks is None else [np.asarray(f, dtype=float) for f in fallbacks]
+        self._route = (self.waypoint, self.goal_coordinates, list(self.fallbacks))
+        self.retries = 0
         self.best_error, self.stalled_steps = np.inf, 0
-        self.settled = 0
+        self.settled, self._settle_readings = 0, []
         self._plan = None
 
     @property
@@ -154,33 +158,54 @@ class SwitchingController:
         if space == SPACE_SENSOR2:
             error = np.abs(sensor2 - self.goal_sensor2)
             if np.all(error < self.tolerance):
+                # Within tolerance: stand still for settle_steps and decide on the mean reading, with its spread
+                # as a margin (noisy readings near the tolerance's edge must not end the task outside it).
                 self.settled += 1
+                self._settle_readings.append(np.asarray(sensor2, dtype=float))
                 if self.settled >= self.settle_steps:
-                    return np.zeros(2), True, float(error.max())
+                    window = np.array(self._settle_readings)
+                    settled_error = np.abs(window.mean(axis=0) - self.goal_sensor2) + window.std(axis=0)
+                    if np.all(settled_error < self.tolerance):
+                        return np.zeros(2), True, float(settled_error.max())
+                    self.settled, self._settle_readings = 0, []
+                    self._plan = None
+                    u = self._best_manoeuvre(sensor2_field, window.mean(axis=0), self.goal_sensor2, sensor2_box)
+                    return u, False, float(settled_error.max())
                 return np.zeros(2), False, float(error.max())
-            self.settled = 0
+            self.settled, self._settle_readings = 0, []
             u = self._best_manoeuvre(sensor2_field, np.asarray(sensor2, dtype=float), self.goal_sensor2,
                                      sensor2_box)
             return u, False, float(error.max())
-        self.settled = 0
+        self.settled, self._settle_readings = 0, []
         self._plan = None
         if coordinates is None:
             return np.zeros(2), False, float('nan')
         coordinates = np.asarray(coordinates, dtype=float)
-        if self.waypoint is not None and np.linalg.norm(coordinates - self.waypoint) < self.waypoint_tolerance:
-            self.waypoint = None
-        if space == SPACE_SENSOR1 and sensor1_jacobian is not None and self.waypoint is not None:
-            error = self.waypoint - coordinates
-            return self.jacobian_step(sensor1_jacobian, error), False, float(np.linalg.norm(error))
         error = float(np.linalg.norm(self.target - coordinates))
         if error < self.best_error - 0.05:
             self.best_error, self.stalled_steps = error, 0
         else:
             self.stalled_steps += 1
+        if self.waypoint is not None and (error < self.waypoint_tolerance or self.stalled_steps > 3 * self.stall_steps):
+            # At the practised exit (or unable to get closer, e.g. noisy readings at the range edge): go for the goal.
+            self.waypoint = None
+            self.best_error, self.stalled_steps = np.inf, 0
+        if space == SPACE_SENSOR1 and sensor1_jacobian is not None and self.waypoint is not None:
+            step_error = self.waypoint - coordinates
+            return self.jacobian_step(sensor1_jacobian, step_error), False, float(np.linalg.norm(step_error))
+        error = float(np.linalg.norm(self.target - coordinates))
         if self.waypoint is None and self.fallbacks and (self.stalled_steps > self.stall_steps
                                                          or error < self.waypoint_tolerance):
             # Arrived (as far as the estimate knows) or stuck, and sensor 2 sees nothing: aim deeper.
             self.goal_coordinates = self.fallbacks.pop(0)
+            self.best_error, self.stalled_steps = np.inf, 0
+        elif (self.waypoint is None and not self.fallbacks and self.stalled_steps > self.stall_steps
+              and self.retries < self.max_retries and self._route[0] is not None):
+            # Every target reached blind and still no sensor 2: the virtual estimate has drifted too far. Go back
+            # to the practised exit (sensor 1 re-localises on re-entry) and run the route again.
+            self.retries += 1
+            self.waypoint, self.goal_coordinates, fallbacks = self._route
+            self.fallbacks = list(fallbacks)
             self.best_error, self.stalled_steps = np.inf, 0
         u = self._best_constant_command(virtual_field, coordinates, self.target, 1.0, bounds)
         return u, False, float(np.linalg.norm(self.target - coordinates))

@@ -23,6 +23,7 @@ from mm_msgs.srv import SetSensorGoal
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from builtin_interfaces.msg import Time
 from std_msgs.msg import Bool, Float64MultiArray, String
 
 from mm_planner.exploration import RandomExplorer
@@ -58,6 +59,7 @@ class SwitchingControllerNode(Node):
         self.controller: Optional[SwitchingController] = None
         self.model: Optional[SensorManifoldModel] = None
         self.goal: Optional[SensorGoal] = None
+        self.goal_stamp = Time()
         self.phase = ControllerStatus.PHASE_EXPLORING if self.exploration_steps else ControllerStatus.PHASE_LEARNING
         self.phase_step = 0
         self.explored = 0
@@ -95,6 +97,7 @@ class SwitchingControllerNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.phase, msg.phase_name, msg.detail = self.phase, PHASE_NAMES[self.phase], self.detail
         msg.error, msg.target, msg.step = float(error), [float(v) for v in target], self.phase_step
+        msg.goal_stamp = self.goal_stamp
         self.status_pub.publish(msg)
 
     # --- inputs ---------------------------------------------------------------------------------------------------
@@ -151,6 +154,7 @@ class SwitchingControllerNode(Node):
             self._set_phase(ControllerStatus.PHASE_FAILED, f'cannot map the goal: {exc}')
             self.goal = None
             return
+        self.goal_stamp = self.goal.header.stamp
         self.goal = None
         self.reach_steps = 0
         self._set_phase(ControllerStatus.PHASE_REACHING_SENSOR1, f'goal {list(reading)} (tolerance {tolerance} m)')

@@ -75,6 +75,7 @@ class WheeledRobot:
     noise_std: float = 0.0           # Gaussian reading noise [m]
     dropout: float = 0.0             # probability that a reading is lost (NaN, REP 117 "invalid")
     random_state: Optional[int] = None
+    noise_range_fraction: float = 0.0  # extra Gaussian noise, std as a fraction of each sensor's max range
 
     def __post_init__(self):
         self._rng = np.random.default_rng(self.random_state)
@@ -113,9 +114,10 @@ class WheeledRobot:
     def read(self, pose: Sequence[float], noisy: bool = True) -> np.ndarray:
         """Noise-free readings of all sensors, plus optional noise and dropout (NaN)."""
         r = np.array([s.read(pose) for s in self.sensors], dtype=float)
-        if noisy and (self.noise_std > 0.0 or self.dropout > 0.0):
+        if noisy and (self.noise_std > 0.0 or self.noise_range_fraction > 0.0 or self.dropout > 0.0):
             finite = np.isfinite(r)
-            r[finite] += self._rng.normal(0.0, self.noise_std, size=int(finite.sum()))
+            std = self.noise_std + self.noise_range_fraction * np.array([s.max_range for s in self.sensors])
+            r[finite] += self._rng.normal(0.0, std[finite])
             for i, sensor in enumerate(self.sensors):
                 if finite[i] and r[i] > sensor.max_range:
                     r[i] = math.inf

@@ -74,6 +74,9 @@ class WheeledSim(Node):
                               min_value=0.0, max_value=1.0, read_only=True)
         noise_std = declare(self, 'noise_std', 0.0, 'Gaussian reading noise [m] (0 = off)', min_value=0.0,
                             max_value=1.0)
+        noise_fraction = declare(self, 'noise_range_fraction', 0.0, 'Gaussian reading noise with a std of this '
+                                 "fraction of each sensor's max range (adds to noise_std)", min_value=0.0,
+                                 max_value=1.0)
         dropout = declare(self, 'dropout', 0.0, 'Probability that a reading is lost (published as NaN)',
                           min_value=0.0, max_value=1.0)
         seed = declare(self, 'random_seed', 0, 'Seed of the noise and dropout generator', min_value=0,
@@ -96,7 +99,8 @@ class WheeledSim(Node):
                                            math.radians(inc)))
         if len(initial_pose) != 3 or not all(math.isfinite(v) for v in initial_pose):
             raise ValueError('initial_pose must be three finite numbers [x, y, theta]')
-        self.robot = WheeledRobot(wheel_radius, wheel_separation, body_radius, sensors, noise_std, dropout, seed)
+        self.robot = WheeledRobot(wheel_radius, wheel_separation, body_radius, sensors, noise_std, dropout, seed,
+                                  noise_fraction)
         self.pose = tuple(float(v) for v in initial_pose)
         self.pose = (self.pose[0], max(self.pose[1], body_radius), self.pose[2])
         self.step_index = 0
@@ -153,6 +157,8 @@ class WheeledSim(Node):
                 return SetParametersResult(successful=False, reason=f'{p.name} can only be set at start-up')
             if p.name == 'noise_std':
                 self.robot.noise_std = float(p.value)
+            elif p.name == 'noise_range_fraction':
+                self.robot.noise_range_fraction = float(p.value)
             elif p.name == 'dropout':
                 self.robot.dropout = float(p.value)
             elif p.name == 'max_wheel_speed':
@@ -204,6 +210,7 @@ class WheeledSim(Node):
         self.bumped = self.robot.touching(self.pose)
         self._publish_step(markers=True)
         response.success, response.message = True, f'reset to {self.pose} at step {self.step_index}'
+        response.stamp = _stamp(self.sim_time_ns)
         return response
 
     # --- stepping ---------------------------------------------------------------------------------------------

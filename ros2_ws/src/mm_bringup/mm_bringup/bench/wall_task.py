@@ -1,0 +1,103 @@
+"""Wall benchmark (results/wall_task.json): paper Section 2 measured through the ROS graph.
+
+Each condition starts its own graph (wheeled_sim in lockstep + sensor_manifold + switching_controller as processes,
+mm_bringup.wall_graph), lets it explore and learn from scratch, then runs randomised reaching tasks with fixed seeds:
+a start where sensor 1 sees the wall, a goal pose close to the wall where only sensor 2 does, shown to the robot as
+its sensor-2 reading. Scoring uses ground truth (evaluation only):
+- success: the controller reports GOAL_REACHED and the noise-free sensor-2 reading at the final pose is within the
+  tolerance of the goal reading (so a noisy estimate that "arrived" early does not count);
+- final error: max |noise-free sensor-2 reading - goal reading| at the final pose [m] (inf when sensor 2 sees nothing);
+- path ratio: travelled path over the oracle's (a controller that knows the geometry: turn in place, drive straight
+  to the goal distance, turn in place; only the distance to the wall matters because readings do not depend on x);
+- blind fraction: share of the path length travelled while no sensor group saw the wall.
+The noisy condition adds Gaussian noise with a std of 1 % of each sensor's max range and 5 % dropped readings, to
+exploration and tasks alike (the robot learns from noisy data too).
+"""
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mm_bringup.wall_experiment import (PAPER_START, oracle_path_length, random_task, sensor2_goal_reading)
+from mm_bringup.wall_graph import WallGraph
+from mm_sim.wheeled_model import SENSOR2, WheeledRobot
+
+NAME = 'wall_task'
+PAPER_GOAL_POSE = (0.0, 0.25, 0.0)
+PAPER_TOLERANCE = 0.005
+
+
+def score(robot: WheeledRobot, episode, start, goal_pose, goal_reading, tolerance: float) -> dict:
+    final = robot.read(episode.poses[-1], noisy=False)[list(SENSOR2)]
+    error = float(np.max(np.abs(final - goal_reading))) if np.all(np.isfinite(final)) else math.inf
+    return {'reached': episode.reached, 'success': bool(episode.reached and error < tolerance),
+            'final_error': error, 'path_ratio': episode.path_length() / oracle_path_length(start, goal_pose),
+            'blind_fraction': episode.blind_fraction(), 'steps': len(episode.poses) - 1,
+            'wall_seconds': episode.wall_seconds, 'final_heading': float(episode.poses[-1][2]),
+            'detail': episode.detail}
+
+
+def run_condition(work_dir: Path, n_tasks: int, exploration_steps: int, tolerance: float, noise_fraction: float,
+                  dropout: float, seed: int) -> dict:
+    robot = WheeledRobot()
+    rng = np.random.default_rng(seed)
+    tasks = [random_task(rng, robot) for _ in range(n_tasks)]
+    began = time.monotonic()
+    with WallGraph(work_dir, exploration_steps=exploration_steps, noise_range_fraction=noise_fraction,
+                   dropout=dropout, seed=seed) as graph:
+        graph.wait_learned(timeout=1800.0)
+        learning_seconds = time.monotonic() - began
+        learning_samples = graph.samples
+        paper_reading = sensor2_goal_reading(robot, PAPER_GOAL_POSE)
+        paper = score(robot, graph.run_episode(PAPER_START, paper_reading, PAPER_TOLERANCE), PAPER_START,
+                      PAPER_GOAL_POSE, paper_reading, PAPER_TOLERANCE)
+        episodes = []
+        for start, goal_pose in tasks:
+            reading = sensor2_goal_reading(robot, goal_pose)
+            episodes.append(score(robot, graph.run_episode(start, reading, tolerance), start, goal_pose, reading,
+                                  tolerance))
+    ok = [e for e in episodes if e['success']]
+    finite_errors = [e['final_error'] for e in episodes]
+    return {
+        'tasks': n_tasks,
+        'success_rate': len(ok) / n_tasks,
+        'median_final_error': float(np.median(finite_errors)),
+        'median_path_ratio': float(np.median([e['path_ratio'] for e in ok])) if ok else None,
+        'blind_fraction': float(np.mean([e['blind_fraction'] for e in ok])) if ok else None,
+        'share_of_tasks_crossing_blind': float(np.mean([e['blind_fraction'] > 0 for e in ok])) if ok else None,
+        'learning_samples': int(learning_samples),
+        'learning_wall_seconds': round(learning_seconds, 1),
+        'seconds_per_episode': float(np.mean([e['wall_seconds'] for e in episodes])),
+        'steps_per_episode_median': float(np.median([e['steps'] for e in episodes])),
+        'failures': [{'task': i, 'detail': e['detail'], 'final_error': e['final_error']}
+                     for i, e in enumerate(episodes) if not e['success']],
+        'paper_task': paper,
+    }
+
+
+def run(output_dir: Path, quick: bool) -> dict:
+    n_tasks = 20 if quick else 120
+    exploration_steps = 10000
+    tolerance = 0.01
+    with tempfile.TemporaryDirectory(prefix='wall_task_') as tmp:
+        clean = run_condition(Path(tmp) / 'clean', n_tasks, exploration_steps, tolerance, 0.0, 0.0, seed=1)
+        noisy = run_condition(Path(tmp) / 'noisy', n_tasks, exploration_steps, tolerance, 0.01, 0.05, seed=2)
+    return {
+        'success_rate': clean['success_rate'],
+        'median_final_error': clean['median_final_error'],
+        'median_path_ratio': clean['median_path_ratio'],
+        'blind_fraction': clean['blind_fraction'],
+        'learning_samples': clean['learning_samples'],
+        'seconds_per_episode': clean['seconds_per_episode'],
+        'success_rate_noisy': noisy['success_rate'],
+        'tolerance_m': tolerance,
+        'noise': {'std_fraction_of_max_range': 0.01, 'dropout': 0.05},
+        'paper_task': clean['paper_task'],
+        'clean': clean,
+        'noisy': noisy,
+        'targets': {'success_rate': 0.95, 'success_rate_noisy': 0.9, 'median_path_ratio_max': 1.3},
+    }

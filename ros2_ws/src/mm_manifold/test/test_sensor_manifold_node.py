@@ -1,0 +1,193 @@
+"""The sensor manifold node in-process: five Range messages of one stamp make one sample and one ManifoldState; bad
+commands are ignored; a saved model is loaded at start, announced on the latched model topic and used for the state;
+a corrupt model file means learning anew; bad parameter updates are refused."""
+import math
+
+import numpy as np
+import pytest
+from mm_common.testing import RosHarness
+from mm_msgs.msg import JacobianEstimate, ManifoldState
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Range
+from std_msgs.msg import Float64MultiArray, String
+
+from mm_bringup.wall_experiment import explore
+from mm_manifold.sensor_manifold import SPACE_NONE, SPACE_SENSOR1, SPACE_VIRTUAL, SensorManifoldModel
+from mm_manifold.sensor_manifold_node import SENSOR_NAMES, SensorManifold
+from mm_sim.wheeled_model import WheeledRobot
+
+QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+DT = 0.05
+INF = math.inf
+
+
+@pytest.fixture(scope='module')
+def model_file(tmp_path_factory):
+    log = explore(WheeledRobot(), 5000, random_state=0, dt=DT)     # enough for a ready model, and quick to fit
+    model = SensorManifoldModel(DT).fit(log.readings, log.commands, log.continuous)
+    assert model.ready
+    path = tmp_path_factory.mktemp('manifold') / 'wall_model.npz'
+    model.save(path)
+    return path, model
+
+
+class Rig:
+    def __init__(self, params=None):
+        self.ros = RosHarness()
+        try:
+            self.node = self.ros.add(SensorManifold(context=self.ros.context, parameter_overrides=[
+                Parameter(k, value=v) for k, v in (params or {}).items()]))
+            self.client = self.ros.node('manifold_test_client')
+            self.states, self.jacobians, self.models = [], [], []
+            self.client.create_subscription(ManifoldState, 'wheeled/manifold/state', self.states.append, QOS)
+            self.client.create_subscription(JacobianEstimate, 'wheeled/manifold/jacobian', self.jacobians.append, QOS)
+            self.ranges = [self.client.create_publisher(Range, f'wheeled/range/{n}', QOS) for n in SENSOR_NAMES]
+            self.cmd = self.client.create_publisher(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands',
+                                                    QOS)
+            pubs = self.ranges + [self.cmd]
+            assert self.ros.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs)
+                                       and self.node.state_pub.get_subscription_count() > 0, timeout=10)
+        except BaseException:
+            self.ros.close()
+            raise
+
+    def subscribe_model(self):
+        """A late joiner on the latched model topic."""
+        self.client.create_subscription(String, 'wheeled/manifold/model', self.models.append, LATCHED)
+
+    def publish_step(self, sec, readings, only=range(5)):
+        for i in only:
+            msg = Range(radiation_type=Range.INFRARED, min_range=0.005, max_range=1.5, range=float(readings[i]))
+            msg.header.stamp.sec = sec
+            msg.header.frame_id = SENSOR_NAMES[i]
+            self.ranges[i].publish(msg)
+
+    def command(self, data):
+        self.cmd.publish(Float64MultiArray(data=[float(v) for v in data]))
+
+    def wait_states(self, n, timeout=10.0):
+        assert self.ros.spin_until(lambda: len(self.states) >= n, timeout), f'{len(self.states)} states, wanted {n}'
+        return self.states[n - 1]
+
+
+@pytest.fixture
+def rig():
+    r = Rig({'learn_after': 100000})
+    yield r
+    r.ros.close()
+
+
+def test_five_ranges_of_one_stamp_make_one_state(rig):
+    rig.publish_step(1, [0.5, 0.6, 0.7, INF, INF])
+    state = rig.wait_states(1)
+    assert state.header.stamp.sec == 1
+    assert list(state.in_range) == [True, True, True, False, False]
+    assert list(state.sensor1) == pytest.approx([0.5, 0.6, 0.7]) and all(math.isinf(v) for v in state.sensor2)
+    assert state.samples == 1 and state.active_space == SPACE_NONE and not state.model_ready
+    # Four of five readings of a step never make a sample; the next complete step does (one state, not two).
+    rig.publish_step(2, [0.5, 0.6, 0.7, INF, INF], only=range(4))
+    rig.command([1.0, 1.0])
+    assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 1)
+    rig.publish_step(3, [INF, INF, INF, 0.2, 0.21])
+    state = rig.wait_states(2)
+    rig.ros.spin_for(0.5)                              # nothing else may come out of the incomplete step
+    assert len(rig.states) == 2
+    assert state.header.stamp.sec == 3 and state.samples == 2
+    assert list(state.in_range) == [False, False, False, True, True]
+    assert rig.node.continuous == [True] and list(rig.node.commands[-1]) == [1.0, 1.0]
+    assert len(rig.node.readings) == 2
+
+
+def test_bad_commands_are_ignored_and_a_missing_command_breaks_the_chain(rig):
+    rig.publish_step(1, [0.5, 0.6, 0.7, INF, INF])
+    rig.wait_states(1)
+    for bad in ([math.nan, 1.0], [1.0, 2.0, 3.0], [INF, 0.0], []):
+        rig.command(bad)
+    rig.command([2.0, -2.0])                           # same topic, in order: the bad ones were handled before it
+    assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 1)
+    np.testing.assert_array_equal(rig.node.commands_since_sample[0], [2.0, -2.0])
+    rig.publish_step(2, [math.nan, 0.6, 0.7, INF, INF])   # a lost reading (REP 117 NaN)
+    state = rig.wait_states(2)
+    assert list(state.in_range) == [False, True, True, False, False]
+    assert rig.node.continuous == [True]
+    # No command before the next step: that sample does not follow from the previous one.
+    rig.publish_step(3, [0.5, 0.6, 0.7, INF, INF])
+    state = rig.wait_states(3)
+    assert state.samples == 3 and rig.node.continuous == [True, False]
+    # Two commands between two steps are not the lockstep contract either.
+    rig.command([1.0, 1.0])
+    rig.command([1.0, 1.0])
+    assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 2)
+    rig.publish_step(4, [0.5, 0.6, 0.7, INF, INF])
+    rig.wait_states(4)
+    assert rig.node.continuous == [True, False, False]
+
+
+def test_parameter_updates_are_validated(rig):
+    node = rig.node
+    assert not node.set_parameters([Parameter('dt', value=math.nan)])[0].successful
+    assert not node.set_parameters([Parameter('dt', value=0.1)])[0].successful        # start-up only
+    assert node.dt == DT
+    assert not node.set_parameters([Parameter('hold_steps', value=-1)])[0].successful  # out of range
+    assert not node.set_parameters([Parameter('model_path', value='/tmp/x.npz')])[0].successful   # read-only
+    assert node.set_parameters([Parameter('learn_after', value=500)])[0].successful
+    assert node.learn_after == 500
+    assert node.set_parameters([Parameter('hold_steps', value=5)])[0].successful and node.hold_steps == 5
+
+
+def test_loads_saved_model_announces_it_and_tracks_the_state(model_file):
+    path, model = model_file
+    rig = Rig({'model_path': str(path), 'learn_after': 100000})
+    try:
+        assert rig.node.model is not None                             # loaded at start, nothing relearned
+        rig.subscribe_model()                                         # late joiner still gets the announcement
+        assert rig.ros.spin_until(lambda: rig.models, timeout=10)
+        assert rig.models[-1].data == str(path.resolve())
+        robot = WheeledRobot()
+        reading = robot.read((0.0, 0.6, -math.pi / 2 + 0.2), noisy=False)
+        rig.publish_step(1, reading)
+        state = rig.wait_states(1)
+        assert state.model_ready and state.active_space == SPACE_SENSOR1 and state.manifold_dimension == 2
+        assert state.fit_residual == pytest.approx(model.grid_.residual_)
+        expected = model.grid_.transform(reading[:3].astype(np.float32).astype(float)[None])[0]
+        np.testing.assert_allclose(state.coordinates, expected, atol=1e-9)
+        assert rig.ros.spin_until(lambda: rig.jacobians)
+        jac = rig.jacobians[-1]
+        assert jac.space == 'sensor1_grid' and (jac.rows, jac.cols) == (2, 2) and jac.support > 0
+        # One command, then sensor 1 loses the wall: the coordinates continue in the virtual space with that
+        # command (the node pairs each sample with the command that produced it).
+        rig.command([-2.0, 2.0])
+        assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 1)
+        rig.publish_step(2, [INF] * 5)
+        state = rig.wait_states(2)
+        assert state.active_space == SPACE_VIRTUAL and state.virtual_uncertainty > 0
+        np.testing.assert_allclose(state.coordinates, model.virtual_.step(expected, np.array([-2.0, 2.0])),
+                                   atol=1e-9)
+        assert rig.ros.spin_until(lambda: rig.jacobians[-1].space == 'virtual_sensor1')
+    finally:
+        rig.ros.close()
+
+
+@pytest.mark.parametrize('damage', ['truncated', 'garbage', 'other_dt'])
+def test_unusable_model_file_means_learning_anew(model_file, tmp_path, damage):
+    path, _ = model_file
+    target = tmp_path / 'model.npz'
+    params = {'model_path': str(target), 'learn_after': 100000}
+    blob = path.read_bytes()
+    if damage == 'truncated':
+        target.write_bytes(blob[:len(blob) // 2])
+    elif damage == 'garbage':
+        target.write_bytes(b'\x00not a model' * 50)
+    else:
+        target.write_bytes(blob)
+        params['dt'] = 0.1
+    rig = Rig(params)                                               # must not raise
+    try:
+        assert rig.node.model is None
+        rig.publish_step(1, [0.5, 0.6, 0.7, INF, INF])
+        state = rig.wait_states(1)
+        assert not state.model_ready and state.active_space == SPACE_NONE
+    finally:
+        rig.ros.close()

@@ -1,0 +1,169 @@
+"""Section 2 control: the random explorer's reflexes and limits, and sensor-switching Jacobian control reaching goals
+given as sensor-2 readings in closed loop with the simulator model (in process, no ROS)."""
+import math
+
+import numpy as np
+import pytest
+
+from mm_bringup.wall_experiment import (PAPER_START, explore, oracle_path_length, random_task, run_episode,
+                                        sensor2_goal_reading, success)
+from mm_manifold.sensor_manifold import SensorManifoldModel, find_excursions, group_in_range
+from mm_planner.exploration import SENSOR1, SENSOR2, RandomExplorer
+from mm_planner.switching_controller import SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SwitchingController
+from mm_sim.wheeled_model import WheeledRobot
+
+DT = 0.05
+FAR = [0.6, 0.5, 0.6, math.inf, math.inf]        # sensor 1 sees the wall comfortably, sensor 2 does not
+
+
+# --- random explorer ---------------------------------------------------------------------------------------------
+def backing_off(u):
+    return u[0] < 0 and u[1] < 0 and u[0] == pytest.approx(u[1])
+
+
+@pytest.mark.parametrize('readings, bumped', [
+    ([0.3, 0.05, 0.3, math.inf, math.inf], False),        # front reading below `near`
+    ([0.07, 0.2, 0.3, math.inf, math.inf], False),
+    ([0.3, -math.inf, 0.3, math.inf, math.inf], False),    # closer than the sensor's minimum range (REP 117)
+    (FAR, True),                                            # bumper pressed, readings look harmless
+    ([math.inf] * 5, True),
+])
+def test_explorer_reflex_backs_off(readings, bumped):
+    for seed in range(5):
+        explorer = RandomExplorer(random_state=seed)
+        for _ in range(int(np.random.default_rng(seed).integers(0, 40))):   # interrupt whatever it was doing
+            explorer.command(FAR)
+        u = explorer.command(readings, bumped)
+        assert backing_off(u), (seed, u)
+        assert u[0] == pytest.approx(-explorer.drive_speed)
+        # The back-off lasts a few steps even once the readings look fine again.
+        for _ in range(3):
+            assert backing_off(explorer.command(FAR))
+
+
+def test_explorer_without_reflex_trigger_does_not_always_back_off():
+    explorer = RandomExplorer(random_state=0)
+    commands = np.array([explorer.command(FAR) for _ in range(300)])
+    assert not all(backing_off(u) for u in commands)
+    assert len({tuple(u) for u in commands}) > 5             # random: turns, runs and arcs
+
+
+def test_explorer_commands_stay_within_limits_and_leave_and_reenter_range():
+    robot = WheeledRobot(noise_std=0.003, dropout=0.02, random_state=0)    # also copes with noise and lost readings
+    explorer = RandomExplorer(random_state=3)
+    log = explore(robot, 6000, random_state=3, explorer=explorer, dt=DT)
+    U = log.commands
+    assert U.shape == (6000, 2) and np.all(np.isfinite(U))
+    # Largest command: a drive at full speed plus the largest arc bend (40 % of the drive speed).
+    assert np.max(np.abs(U)) <= 1.4 * explorer.drive_speed + 1e-9
+    assert np.min(log.poses[:, 1]) >= robot.body_radius                   # never through the wall
+    # It explores: in and out of sensor-1 range many times, and into sensor 2's range.
+    runs = find_excursions(log.readings, U, log.continuous)
+    assert sum(r[1] >= 0 for r in runs) > 30
+    assert explorer.excursions_started > 30
+    assert group_in_range(log.readings, SENSOR2).sum() > 50
+    assert group_in_range(log.readings, SENSOR1).mean() > 0.3
+
+
+def test_explorer_always_comes_back_into_sensor1_range():
+    """Excursions end by undoing the commands since leaving (retrace), so none stays open - except possibly one cut
+    off by the end of the data - and the return needs no world model."""
+    robot = WheeledRobot()
+    log = explore(robot, 8000, random_state=5, dt=DT)
+    runs = find_excursions(log.readings, log.commands, log.continuous)
+    open_runs = [r for r in runs if r[1] < 0]
+    assert len(runs) > 50
+    assert all(r[2] == len(log.readings) - 1 for r in open_runs) and len(open_runs) <= 1
+    # Short trips: the planned excursion is ~130 steps at most, plus practice and a retrace (measured max ~270).
+    assert max(r[1] - r[0] for r in runs if r[1] >= 0) <= 400
+
+
+# --- switching controller: construction and goals -----------------------------------------------------------
+def test_controller_validates_parameters_and_goals():
+    for bad in (dict(dt=0.0), dict(dt=DT, max_wheel_speed=-1.0), dict(dt=DT, tolerance=0.0),
+                dict(dt=DT, horizon=0)):
+        with pytest.raises(ValueError):
+            SwitchingController(**bad)
+    c = SwitchingController(DT)
+    with pytest.raises(ValueError, match='no goal'):
+        c.command(SPACE_SENSOR2, None, np.array([0.2, 0.2]), None, None)
+    for goal, coords in (([math.nan, 0.2], [1.0, 1.0]), ([0.2, math.inf], [1.0, 1.0]), ([0.2, 0.2], [math.nan, 0])):
+        with pytest.raises(ValueError, match='finite'):
+            c.set_goal(np.array(goal), np.array(coords))
+    assert c.goal_sensor2 is None                        # a rejected goal leaves no trace
+    # Note: SwitchingController.set_goal does not check sizes; the node rejects wrong-size goals (node test).
+
+
+def test_jacobian_step_respects_the_speed_limit():
+    c = SwitchingController(DT, max_wheel_speed=3.0)
+    J = np.array([[0.5, 0.5], [-0.5, 0.5]])                  # well conditioned: damping changes it by ~2 %
+    u = c.jacobian_step(J, np.array([100.0, -50.0]))
+    assert np.max(np.abs(u)) == pytest.approx(3.0)
+    error = np.array([0.01, -0.02])
+    small = c.jacobian_step(J, error)
+    assert np.max(np.abs(small)) < 3.0
+    np.testing.assert_allclose(J @ small * c.horizon * DT, error, rtol=0.03)   # closes the error in `horizon` steps
+
+
+# --- closed-loop episodes with a learned model -------------------------------------------------------------------
+@pytest.fixture(scope='module')
+def robot():
+    return WheeledRobot()
+
+
+@pytest.fixture(scope='module')
+def model(robot):
+    log = explore(robot, 10000, random_state=0, dt=DT)
+    return SensorManifoldModel(DT).fit(log.readings, log.commands, log.continuous)
+
+
+PAPER_GOAL_POSE = (0.0, 0.25, 0.0)
+
+
+def test_paper_task_crosses_the_blind_region_and_parks_parallel(robot, model):
+    goal_reading = sensor2_goal_reading(robot, PAPER_GOAL_POSE)
+    controller = SwitchingController(DT, tolerance=0.005)
+    episode = run_episode(robot, model, PAPER_START, goal_reading, controller, dt=DT)
+    ok, error = success(robot, episode, goal_reading, 0.005)
+    assert ok, f'final sensor-2 error {error:.4f} m after {len(episode.poses)} steps'
+    spaces = np.array(episode.spaces)
+    # Sensor 1 first, then blind (virtual sensor-1 space), then sensor 2 until the goal: the paper's Fig. 8.
+    assert spaces[0] == SPACE_SENSOR1 and spaces[-1] == SPACE_SENSOR2
+    assert np.sum(spaces == SPACE_VIRTUAL) > 0
+    first_virtual = int(np.argmax(spaces == SPACE_VIRTUAL))
+    assert np.all(spaces[:first_virtual] == SPACE_SENSOR1)
+    assert first_virtual < int(np.argmax(spaces == SPACE_SENSOR2))
+    # Parallel to the wall at the end. Both side readings within 5 mm of equal goal values only imply
+    # |heading| < atan(0.01 / 0.03) ~ 0.32 rad (sensors 3 cm apart); ask for clearly better.
+    x, y, theta = episode.poses[-1]
+    assert abs(theta) < 0.15                                       # measured ~0.06 rad
+    assert y == pytest.approx(PAPER_GOAL_POSE[1], abs=0.01)
+    commands = np.array(episode.commands)
+    assert np.max(np.abs(commands)) <= controller.max_wheel_speed + 1e-9
+    # A direct path, not a wander: the oracle needs 0.75 m (turn, drive, turn).
+    assert episode.path_length() < 2.0 * oracle_path_length(PAPER_START, PAPER_GOAL_POSE)   # measured ~1.4x
+
+
+def test_random_tasks_mostly_succeed(robot, model):
+    """20 random tasks (fixed seed): start seeing the wall with sensor 1, goal seen by sensor 2 only. Tolerance: the
+    controller's and the node's default 0.01 m (measured 17-18/20; at the paper task's 0.005 m only 13-15/20)."""
+    tolerance = 0.01
+    rng = np.random.default_rng(0)
+    results, ratios = [], []
+    for _ in range(20):
+        start, goal = random_task(rng, robot)
+        assert np.all(np.isfinite(robot.read(start, noisy=False)[list(SENSOR1)]))
+        assert not np.all(np.isfinite(robot.read(goal, noisy=False)[list(SENSOR1)]))
+        goal_reading = sensor2_goal_reading(robot, goal)
+        controller = SwitchingController(DT, tolerance=tolerance)
+        episode = run_episode(robot, model, start, goal_reading, controller, dt=DT)
+        ok, error = success(robot, episode, goal_reading, tolerance)
+        results.append(ok)
+        if episode.reached:                   # it never claims the goal falsely (scored on the true reading)
+            assert error < tolerance
+        assert np.max(np.abs(episode.commands)) <= controller.max_wheel_speed + 1e-9
+        if ok:
+            ratios.append(episode.path_length() / oracle_path_length(start, goal))
+    assert np.mean(results) >= 0.8, f'{sum(results)}/20 tasks reached'
+    assert np.median(ratios) < 1.5                                 # measured ~1.2
+
