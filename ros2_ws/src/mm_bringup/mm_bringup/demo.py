@@ -32,6 +32,11 @@ from mm_sim.wheeled_model import SENSOR2, WheeledRobot
 
 PAPER_GOAL_POSE = (0.0, 0.25, 0.0)
 PAPER_TOLERANCE = 0.005
+# The recorder must hold these from the loop's first step (see WallGraph).
+LOOP_TOPICS = ['/clock', '/wheeled/ground_truth/odom', '/wheeled/wheel_velocity_controller/commands',
+               '/wheeled/controller/status'] + [f'/wheeled/range/{n}' for n in ('front_left', 'front_center',
+                                                                                 'front_right', 'side_front',
+                                                                                 'side_rear')]
 
 
 def log(text: str) -> None:
@@ -41,7 +46,8 @@ def log(text: str) -> None:
 def wall_experiment(graph: ProcessGraph, work: Path, exploration_steps: int, figures: Path) -> dict:
     robot = WheeledRobot()
     began = time.monotonic()
-    with WallGraph(work, exploration_steps=exploration_steps, graph=graph, recorder='recorder') as wall:
+    with WallGraph(work, exploration_steps=exploration_steps, graph=graph, recorder='recorder',
+                   recorded_topics=LOOP_TOPICS) as wall:
         log(f'wheeled robot: exploring {exploration_steps} steps, then learning')
         wall.wait_learned(timeout=1800.0)
         learned_s = time.monotonic() - began

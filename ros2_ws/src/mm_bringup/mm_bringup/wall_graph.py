@@ -77,10 +77,13 @@ class WallGraph:
 
     def __init__(self, work_dir: Path, exploration_steps: int = 10000, noise_range_fraction: float = 0.0,
                  dropout: float = 0.0, model_path: Optional[Path] = None, seed: int = 0,
-                 graph: Optional[ProcessGraph] = None, dt: float = 0.05, recorder: Optional[str] = None):
-        """`recorder`: name of a recorder node already running in `graph`; each node is then started only once the
-        recorder subscribes to the topics of the nodes before it, so the bag holds the loop from its first step
-        (the simulator re-publishes its first step until a command arrives)."""
+                 graph: Optional[ProcessGraph] = None, dt: float = 0.05, recorder: Optional[str] = None,
+                 recorded_topics: Sequence[str] = ()):
+        """`recorder`: name of a recorder node already running in `graph`, and `recorded_topics` the topics it must
+        have subscribed to before the loop may start. The simulator starts first (it re-publishes its first step until
+        a command arrives), then the controller (it only answers states), and the manifold node last, which closes
+        the loop; each waits until the recorder subscribes to the topics of the nodes before it, so the bag holds the
+        loop from its first step."""
         self.work_dir = Path(work_dir)
         self.work_dir.mkdir(parents=True, exist_ok=True)
         self.dt = dt
@@ -101,24 +104,26 @@ class WallGraph:
         node.create_subscription(Odometry, 'wheeled/ground_truth/odom', self._on_odom, LOOP_QOS)
         node.create_subscription(ManifoldState, 'wheeled/manifold/state', self._on_state, LOOP_QOS)
         self.goal_pub = node.create_publisher(SensorGoal, 'wheeled/goal', LATCHED_QOS)
+        self.reset_client = node.create_client(ResetPose, 'wheeled/reset')
         self.nodes = []
         sim_time = {'use_sim_time': True}
+        sim_topics = ['/clock', '/wheeled/bumper', '/wheeled/ground_truth/odom'] + [
+            f'/wheeled/range/{n}' for n in ('front_left', 'front_center', 'front_right', 'side_front', 'side_rear')]
         steps = [
             ('mm_sim', 'wheeled_sim', {'dt': dt, 'noise_range_fraction': noise_range_fraction, 'dropout': dropout,
-                                       'random_seed': seed, 'republish_period': 0.5},
-             ['/wheeled/range/front_center', '/wheeled/range/side_rear', '/wheeled/ground_truth/odom']),
-            ('mm_manifold', 'sensor_manifold', {**sim_time, 'dt': dt, 'learn_after': exploration_steps,
-                                                'model_path': str(model_path)},
-             ['/wheeled/manifold/state', '/wheeled/manifold/jacobian']),
+                                       'random_seed': seed, 'republish_period': 0.5}, sim_topics),
             ('mm_planner', 'switching_controller', {**sim_time, 'dt': dt, 'random_seed': seed,
-                                                    'exploration_steps': exploration_steps}, []),
+                                                    'exploration_steps': exploration_steps},
+             ['/wheeled/wheel_velocity_controller/commands', '/wheeled/controller/status']),
+            ('mm_manifold', 'sensor_manifold', {**sim_time, 'dt': dt, 'learn_after': exploration_steps,
+                                                'model_path': str(model_path)}, []),
         ]
-        for package, executable, parameters, topics in steps:
+        for package, executable, parameters, published in steps:
             self.nodes.append(self.graph.start(package, executable, parameters))
-            if recorder and topics:
+            wait = [t for t in published if t in recorded_topics]
+            if recorder and wait:
                 self.spin_until(lambda: all(any(i.node_name == recorder for i in node.get_subscriptions_info_by_topic(t))
-                                            for t in topics), 60.0, f'{recorder} to subscribe to {topics}')
-        self.reset_client = node.create_client(ResetPose, 'wheeled/reset')
+                                            for t in wait), 60.0, f'{recorder} to subscribe to {wait}')
 
     # --- callbacks (evaluation side) --------------------------------------------------------------------------------
     def _on_status(self, msg: ControllerStatus) -> None:

@@ -1,0 +1,94 @@
+"""Section 2 through the graph: wheeled_sim + sensor_manifold + switching_controller as processes, with a recorder.
+
+One module-scoped run: the robot explores and learns in the graph, then the paper's task runs (start facing the wall
+at 1 m, goal shown as the sensor-2 reading 0.25 m from the wall, parallel to it). Checked: the task is reached across
+a blind stretch and ends parallel to the wall; no learning or control node subscribes to ground truth; and the grid
+relearnt offline from the recorded bag (replay) is the grid the manifold node learnt online.
+"""
+import math
+
+import numpy as np
+import pytest
+from mm_common.rosbag import iter_messages
+from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import Range
+from std_msgs.msg import Float64MultiArray
+
+from mm_bringup.process_graph import ProcessGraph
+from mm_bringup.wall_experiment import PAPER_START, sensor2_goal_reading
+from mm_bringup.wall_graph import WallGraph
+from mm_manifold.sensor_manifold import SensorManifoldModel
+from mm_manifold.sensor_manifold_node import SENSOR_NAMES
+from mm_sim.wheeled_model import SENSOR2, WheeledRobot
+
+EXPLORATION = 10000
+GOAL_POSE = (0.0, 0.25, 0.0)
+TOLERANCE = 0.005
+RECORDED = [f'/wheeled/range/{n}' for n in SENSOR_NAMES] + ['/wheeled/wheel_velocity_controller/commands']
+ROBOT_NODES = {'wheeled_sim', 'sensor_manifold', 'switching_controller'}
+
+
+@pytest.fixture(scope='module')
+def run(tmp_path_factory):
+    work = tmp_path_factory.mktemp('wall_graph')
+    bag = work / 'bag'
+    robot = WheeledRobot()
+    with ProcessGraph(log_dir=work / 'logs') as graph:
+        recorder = graph.start('mm_bringup', 'recorder', {
+            'output': str(bag), 'discovery_period': 0.05,
+            'topics': ['/wheeled/range/.*', '/wheeled/wheel_velocity_controller/commands']})
+        with WallGraph(work, exploration_steps=EXPLORATION, graph=graph, recorder='recorder',
+                       recorded_topics=RECORDED) as wall:
+            wall.wait_learned(timeout=900.0)
+            topics = wall.node.get_topic_names_and_types()
+            ground_truth = {name: sorted(i.node_name for i in wall.node.get_subscriptions_info_by_topic(name))
+                            for name, _ in topics if 'ground_truth' in name}
+            episode = wall.run_episode(PAPER_START, sensor2_goal_reading(robot, GOAL_POSE), TOLERANCE)
+        assert graph.stop(recorder) == 0, graph.log_tail(recorder)
+    return dict(episode=episode, ground_truth=ground_truth, bag=bag, model=SensorManifoldModel.load(
+        work / 'wall_model.npz'), robot=robot)
+
+
+def test_no_learning_or_control_node_subscribes_to_ground_truth(run):
+    assert '/wheeled/ground_truth/odom' in run['ground_truth']
+    for topic, subscribers in run['ground_truth'].items():
+        assert not ROBOT_NODES & set(subscribers), f'{topic} is read by {subscribers}'
+        assert 'wall_experimenter' in subscribers or topic != '/wheeled/ground_truth/odom'
+
+
+def test_paper_task_crosses_the_blind_region_and_ends_parallel(run):
+    ep, robot = run['episode'], run['robot']
+    assert ep.reached, ep.detail
+    goal = sensor2_goal_reading(robot, GOAL_POSE)
+    final = robot.read(ep.poses[-1], noisy=False)[list(SENSOR2)]
+    assert np.max(np.abs(final - goal)) < TOLERANCE
+    assert abs(math.atan2(math.sin(ep.poses[-1][2]), math.cos(ep.poses[-1][2]))) < 0.15
+    assert ep.blind_fraction() > 0.0
+    spaces = [s for i, s in enumerate(ep.spaces) if i == 0 or s != ep.spaces[i - 1]]
+    assert spaces[0] == 1 and 2 in spaces and spaces[-1] == 3, spaces
+
+
+def test_grid_relearnt_from_the_bag_is_the_online_grid(run):
+    """Replay: samples are rebuilt from the recorded readings (grouped by stamp) and commands (in order: one per
+    step in lockstep), and the model is refitted with the node's hyperparameters."""
+    readings, commands = {}, []
+    for record in iter_messages(run['bag']):
+        topic, data = record.topic, record.data
+        if topic.startswith('/wheeled/range/'):
+            msg = deserialize_message(data, Range)
+            stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            readings.setdefault(stamp, [math.nan] * 5)[SENSOR_NAMES.index(topic.rsplit('/', 1)[1])] = msg.range
+        else:
+            commands.append(deserialize_message(data, Float64MultiArray).data)
+    online = run['model']
+    n = online.n_samples_
+    R = np.array([readings[s] for s in sorted(readings)][:n], dtype=float)
+    U = np.array(list(commands[:n - 1]) + [[0.0, 0.0]], dtype=float)
+    continuous = np.ones(n, dtype=bool)
+    continuous[-1] = False
+    assert len(R) == n and len(commands) >= n - 1
+    replayed = SensorManifoldModel(online.dt, online.grid_rows, online.grid_cols,
+                                   jacobian_degree=online.jacobian_degree).fit(R, U, continuous)
+    np.testing.assert_allclose(replayed.grid_.nodes_, online.grid_.nodes_, atol=1e-9)
+    assert replayed.n_excursions_ == online.n_excursions_
+    np.testing.assert_allclose(replayed.virtual_.overlap_sensor2_, online.virtual_.overlap_sensor2_, atol=1e-9)
