@@ -38,6 +38,9 @@ def choose_demo_goal(seed: int, joints, rng: Optional[np.random.Generator] = Non
     grid = JointGrid(*model.joint_limits)
     blocked = truth_cell_map(model, grid)
     start = grid.cell_of(joints)
+    # The arm stands in its cell without touching the object, so that cell is passable for the path check even when
+    # the object reaches into another part of it (the lattice ground truth then marks the whole cell blocked).
+    blocked[start] = blocked[start] and model.in_contact(joints)
     rng = rng or np.random.default_rng(seed)
     free = [tuple(int(v) for v in c) for c in np.argwhere(~blocked)]
     order = rng.permutation(len(free))

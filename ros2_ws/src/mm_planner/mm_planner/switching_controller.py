@@ -93,6 +93,7 @@ class SwitchingController:
         self.best_error, self.stalled_steps = np.inf, 0
         self.settled, self._settle_readings = 0, []
         self._plan = None
+        self._s2_best, self._s2_stalled, self._chosen, self._avoid = np.inf, 0, set(), set()
 
     @property
     def target(self) -> Optional[np.ndarray]:
@@ -134,12 +135,29 @@ class SwitchingController:
                 y = np.clip(y, box[0], box[1])
         cost = np.sum(((y - goal) / self.tolerance) ** 2, axis=1) + self.travel_weight * self.manoeuvre_travel
         cost[leaves | ~np.isfinite(cost)] = np.inf
+        cost[list(self._avoid)] = np.inf
         if not np.isfinite(cost).any():        # every manoeuvre leaves: the one-step least-squares move
             return self.jacobian_step(field.jacobian(state[None])[0], goal - state)
-        best = seqs[int(np.argmin(cost))]
+        chosen = int(np.argmin(cost))
+        self._chosen.add(chosen)
+        best = seqs[chosen]
         moving = np.flatnonzero(np.any(best != 0, axis=1))
         self._plan = best[1:moving[-1] + 1] if len(moving) else None
         return best[0]
+
+    def _watch_progress(self, error: float) -> None:
+        """Sensor-2 phase: when the manoeuvres chosen since the last progress have not brought the reading closer for
+        3 * stall_steps, the learned field mispredicts them here (the robot cycles between them): rule them out until
+        the error improves again."""
+        if error < self._s2_best - 0.25 * self.tolerance:
+            self._s2_best, self._s2_stalled, self._chosen, self._avoid = error, 0, set(), set()
+            return
+        self._s2_stalled += 1
+        if self._s2_stalled > 3 * self.stall_steps and (self._plan is None or not len(self._plan)):
+            self._avoid |= self._chosen
+            if len(self._avoid) >= len(self.manoeuvres) - 1:
+                self._avoid = set()
+            self._chosen, self._s2_stalled = set(), 0
 
     def jacobian_step(self, J: np.ndarray, error: np.ndarray) -> np.ndarray:
         """Damped least-squares Jacobian control: the wheel command that closes `error` in about `horizon` steps."""
@@ -173,6 +191,7 @@ class SwitchingController:
                     return u, False, float(settled_error.max())
                 return np.zeros(2), False, float(error.max())
             self.settled, self._settle_readings = 0, []
+            self._watch_progress(float(error.max()))
             u = self._best_manoeuvre(sensor2_field, np.asarray(sensor2, dtype=float), self.goal_sensor2,
                                      sensor2_box)
             return u, False, float(error.max())

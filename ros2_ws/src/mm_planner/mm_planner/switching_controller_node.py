@@ -65,6 +65,7 @@ class SwitchingControllerNode(Node):
         self.explored = 0
         self.bumped = False
         self.pending: Optional[ManifoldState] = None
+        self.state_stamp = None
         self.last_answered = -1
         self.reach_steps = 0
         self.detail = 'started'
@@ -94,7 +95,8 @@ class SwitchingControllerNode(Node):
 
     def _status(self, error: float = math.nan, target=()) -> None:
         msg = ControllerStatus()
-        msg.header.stamp = self.get_clock().now().to_msg()
+        # Stamped with the state it answers (the sim clock on /clock may lag behind the state that just arrived).
+        msg.header.stamp = self.state_stamp if self.state_stamp is not None else self.get_clock().now().to_msg()
         msg.phase, msg.phase_name, msg.detail = self.phase, PHASE_NAMES[self.phase], self.detail
         msg.error, msg.target, msg.step = float(error), [float(v) for v in target], self.phase_step
         msg.goal_stamp = self.goal_stamp
@@ -169,6 +171,7 @@ class SwitchingControllerNode(Node):
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         if stamp <= self.last_answered:
             return
+        self.state_stamp = msg.header.stamp
         self.pending = msg
         self._answer(msg)
 
