@@ -120,6 +120,9 @@ class WallGraph:
         ]
         for package, executable, parameters, published in steps:
             self.nodes.append(self.graph.start(package, executable, parameters))
+            # One node at a time, each seen on the graph before the next starts (simultaneous starts occasionally
+            # left two participants without matching endpoints, and the loop never started).
+            self.spin_until(lambda: executable in node.get_node_names(), 60.0, f'{executable} to appear')
             wait = [t for t in published if t in recorded_topics]
             if recorder and wait:
                 self.spin_until(lambda: all(any(i.node_name == recorder for i in node.get_subscriptions_info_by_topic(t))

@@ -235,8 +235,8 @@ class StateTracker:
 
     Noisy readings: while a group stays in range, its state is a blend of the learned-Jacobian prediction from the
     previous state and the command, and the new measurement (`measurement_gain` of the latter; 1 = raw readings).
-    The default 1 keeps the readings as they are (blending cost precision on clean readings in our trials); a lost reading
-    (bridged with its last value) contributes no measurement, only the prediction.
+    The default 1 keeps the readings as they are (blending cost precision on clean readings in our trials); a lost
+    reading (bridged with its last value) contributes no measurement, only the prediction.
     """
 
     def __init__(self, model: SensorManifoldModel, hold_steps: int = 3, sensor2_hold_steps: int = 20,

@@ -167,7 +167,11 @@ class SensorManifold(Node):
     def _on_command(self, msg: Float64MultiArray) -> None:
         data = np.asarray(msg.data, dtype=float)
         if data.shape != (2,) or not np.all(np.isfinite(data)):
-            return          # the simulator rejects it too: it did not move the robot
+            # The simulator rejects it too: it did not move the robot, so it is no part of the chain either.
+            self.rejected += 1
+            self.get_logger().warn(f'ignored command {list(data)} ({self.rejected} so far): need two finite '
+                                   'wheel speeds', throttle_duration_sec=1.0)
+            return
         self.commands_since_sample.append(data)
         if self.waiting is not None:
             reading, stamp, _ = self.waiting

@@ -82,6 +82,9 @@ class SwitchingController:
         estimate has drifted)."""
         sensor2_goal = np.asarray(sensor2_goal, dtype=float)
         goal_coordinates = np.asarray(goal_coordinates, dtype=float)
+        if sensor2_goal.ndim != 1 or not len(sensor2_goal) or goal_coordinates.ndim != 1:
+            raise ValueError(f'goal reading and coordinates must be vectors, got shapes {sensor2_goal.shape} and '
+                             f'{goal_coordinates.shape}')
         if not (np.all(np.isfinite(sensor2_goal)) and np.all(np.isfinite(goal_coordinates))):
             raise ValueError('goal reading and coordinates must be finite')
         self.goal_sensor2 = sensor2_goal
