@@ -94,7 +94,7 @@ def run_episode(robot: WheeledRobot, model: SensorManifoldModel, start, goal_rea
         else:
             J1 = model.regions1_.interpolate(coords) if space == 1 else None
             u, done, _ = controller.command(space, coords, s2, model.virtual_.field_, model.field2_, J1, bounds,
-                                                model.sensor2_box_)
+                                            model.sensor2_box_, sensor2_measured=bool(np.all(np.isfinite(r[3:]))))
         if done:
             ep.reached = True
             break

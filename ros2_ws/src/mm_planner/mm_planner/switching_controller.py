@@ -170,15 +170,19 @@ class SwitchingController:
 
     def command(self, space: int, coordinates: Optional[np.ndarray], sensor2: Optional[np.ndarray],
                 virtual_field, sensor2_field: PolynomialJacobianField, sensor1_jacobian: Optional[np.ndarray] = None,
-                bounds: Optional[np.ndarray] = None, sensor2_box: Optional[np.ndarray] = None):
+                bounds: Optional[np.ndarray] = None, sensor2_box: Optional[np.ndarray] = None,
+                sensor2_measured: bool = True):
         """(wheel command, reached, error in the active space) for the current state. `sensor1_jacobian` is the local
         Jacobian of the grid coordinates at the current reading (used while sensor 1 is in range);
-        `sensor2_box` (2, 2) the range of sensor-2 readings seen during exploration."""
+        `sensor2_box` (2, 2) the range of sensor-2 readings seen during exploration; `sensor2_measured` False when
+        the sensor-2 state is carried over a lost or out-of-range reading (it then never ends the task)."""
         if self.goal_sensor2 is None:
             raise ValueError('no goal set')
         if space == SPACE_SENSOR2:
             error = np.abs(sensor2 - self.goal_sensor2)
             if np.all(error < self.tolerance):
+                if not sensor2_measured:      # hold still until sensor 2 itself confirms
+                    return np.zeros(2), False, float(error.max())
                 # Within tolerance: stand still for settle_steps and decide on the mean reading, with its spread
                 # as a margin (noisy readings near the tolerance's edge must not end the task outside it).
                 self.settled += 1

@@ -204,7 +204,7 @@ class SwitchingControllerNode(Node):
             self._set_phase(REACHING[space], f'{PHASE_NAMES[REACHING[space]].lower()} active')
         J1 = m.regions1_.interpolate(coords) if space == SPACE_SENSOR1 and coords is not None else None
         u, done, error = c.command(space, coords, s2, m.virtual_.field_, m.field2_, J1, m.virtual_bounds(),
-                                   m.sensor2_box_)
+                                   m.sensor2_box_, sensor2_measured=all(msg.in_range[3:5]))
         target = c.goal_sensor2 if space == SPACE_SENSOR2 else (c.target if c.target is not None else ())
         if done:
             self._set_phase(ControllerStatus.PHASE_GOAL_REACHED, f'sensor-2 error {error:.4f} m')
