@@ -76,8 +76,8 @@ def test_rebuilt_embedding_matches_the_online_fit(recorded):
     rebuilt = ArmStateLearner(online.n_components, online.n_neighbors, online.lle_method, online.region,
                               online.grid_shape, online.joint_limits, online.cell_min_frames,
                               online.cell_collision_fraction, online.map_margin,
-                              random_state=online.random_state, n_folds=online.n_folds).fit(kps, online.train_joints_, online.train_contact_,
-                                                                    stamps)
+                              random_state=online.random_state, n_folds=online.n_folds).fit(
+                                  kps, online.train_joints_, online.train_contact_, stamps)
     assert rebuilt.vectorizer_.n_labels_ == online.vectorizer_.n_labels_
     np.testing.assert_allclose(rebuilt.vectorizer_.training_vectors_, online.vectorizer_.training_vectors_,
                                atol=1e-4, equal_nan=True)

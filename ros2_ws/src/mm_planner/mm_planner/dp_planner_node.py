@@ -106,6 +106,9 @@ class DpPlannerNode(Node):
         self.joints_wall = 0.0
         self.embedded_stamps = set()
         self.last_contact = False
+        # The touch reading of a step travels on its own topic and may arrive after the joint state: in lockstep the
+        # first contact message after a command belongs to the step that command produced, so act only once it came.
+        self.contact_since_command = False
         self.contacts_while_executing = 0
         self.commands_sent = 0
         self.learning_since = time.monotonic()
@@ -157,6 +160,8 @@ class DpPlannerNode(Node):
 
     def _on_contact(self, msg: Bool) -> None:
         self.last_contact = bool(msg.data)
+        self.contact_since_command = True
+        self._try_act()
         if msg.data and self.phase == P.PHASE_EXECUTING:
             self.contacts_while_executing += 1
             self.get_logger().warn(f'contact while executing ({self.contacts_while_executing} so far)',
@@ -265,6 +270,9 @@ class DpPlannerNode(Node):
     def _try_act(self, timer: bool = False) -> None:
         if self.joints is None or self.acted_stamp == self.joints_stamp:
             return
+        waited = timer and time.monotonic() - self.joints_wall > self.embedding_timeout
+        if not self.contact_since_command and not waited:
+            return
         if self.wait_for_embedding and self.joints_stamp not in self.embedded_stamps:
             if not (timer and time.monotonic() - self.joints_wall > self.embedding_timeout):
                 return
@@ -274,6 +282,7 @@ class DpPlannerNode(Node):
         if command is None:
             return
         self.acted_stamp = self.joints_stamp
+        self.contact_since_command = False
         self.phase_step += 1
         self.commands_sent += 1
         self.cmd_pub.publish(Float64MultiArray(data=[float(v) for v in command]))
