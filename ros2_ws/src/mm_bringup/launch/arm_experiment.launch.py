@@ -9,102 +9,32 @@ reads <pkg>/config/<executable>.yaml when that file is installed, or the file gi
 its built-in defaults. Ctrl-C (SIGINT) stops every node; the recorder finalises metadata.yaml and the MCAP file on
 the way out. 400x400 rgb8 frames are 480 kB each: zstd compression keeps long recordings small.
 """
-import os
-
-from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
-from launch.substitutions import LaunchConfiguration
-from launch_ros.actions import Node
-from launch_ros.parameter_descriptions import ParameterValue
 
-_TRUE = ('true', '1', 'yes', 'on')
-_FALSE = ('false', '0', 'no', 'off')
-
-
-def _bool(text: str, default=None):
-    """true/false (and 1/0, yes/no, on/off) -> bool; '' -> default; anything else is an error."""
-    value = text.strip().lower()
-    if not value:
-        return default
-    if value in _TRUE:
-        return True
-    if value in _FALSE:
-        return False
-    raise ValueError(f'expected true or false, got {text!r}')
-
-
-def _params_file(context, arg_name: str, package: str, filename: str):
-    """The file named by the launch argument, else <package share>/config/<filename> when installed, else None."""
-    given = LaunchConfiguration(arg_name).perform(context).strip()
-    if given:
-        if not os.path.isfile(given):
-            raise FileNotFoundError(f'{arg_name} not found: {given}')
-        return given
-    default = os.path.join(get_package_share_directory(package), 'config', filename)
-    return default if os.path.isfile(default) else None
-
-
-def _node_parameters(params_file, overrides):
-    return ([params_file] if params_file else []) + ([overrides] if overrides else [])
+from mm_common.launch_helpers import (launch_bool, lockstep_overrides, params_argument, recorder_actions,
+                                      recorder_arguments, screen_node)
 
 
 def _launch_graph(context, *args, **kwargs):
-    use_sim_time = _bool(LaunchConfiguration('use_sim_time').perform(context), default=True)
-
-    sim_overrides = {}
-    lockstep = _bool(LaunchConfiguration('lockstep').perform(context))
-    if lockstep is not None:
-        sim_overrides['lockstep'] = lockstep
-    actions = [
-        Node(package='mm_sim', executable='arm_sim', output='screen',
-             parameters=_node_parameters(_params_file(context, 'sim_params', 'mm_sim', 'arm_sim.yaml'),
-                                         sim_overrides)),
-        Node(package='mm_manifold', executable='image_embedding', output='screen',
-             parameters=_node_parameters(
-                 _params_file(context, 'embedding_params', 'mm_manifold', 'image_embedding.yaml'),
-                 {'use_sim_time': use_sim_time})),
-        Node(package='mm_planner', executable='dp_planner', output='screen',
-             parameters=_node_parameters(
-                 _params_file(context, 'planner_params', 'mm_planner', 'dp_planner.yaml'),
-                 {'use_sim_time': use_sim_time})),
-    ]
-    if _bool(LaunchConfiguration('record').perform(context), default=False):
-        # The recorder stamps messages with their wall receive time, as `ros2 bag record` does by default.
-        actions.append(Node(
-            package='mm_bringup', executable='recorder', output='screen',
-            parameters=[{
-                # ParameterValue(..., value_type=str): a bag named e.g. '2024' must stay a string.
-                'output': ParameterValue(LaunchConfiguration('bag').perform(context), value_type=str),
-                'overwrite': _bool(LaunchConfiguration('overwrite').perform(context), default=False),
-                'compression': ParameterValue(LaunchConfiguration('compression').perform(context), value_type=str),
-            }]))
-    return actions
+    use_sim_time = launch_bool(context, 'use_sim_time', default=True)
+    return [
+        screen_node(context, 'mm_sim', 'arm_sim', 'sim_params', lockstep_overrides(context)),
+        screen_node(context, 'mm_manifold', 'image_embedding', 'embedding_params', {'use_sim_time': use_sim_time}),
+        screen_node(context, 'mm_planner', 'dp_planner', 'planner_params', {'use_sim_time': use_sim_time}),
+    ] + recorder_actions(context)
 
 
 def generate_launch_description():
     return LaunchDescription([
-        DeclareLaunchArgument('sim_params', default_value='',
-                              description='YAML parameter file of arm_sim '
-                                          '(empty: mm_sim/config/arm_sim.yaml if installed)'),
-        DeclareLaunchArgument('embedding_params', default_value='',
-                              description='YAML parameter file of image_embedding '
-                                          '(empty: mm_manifold/config/image_embedding.yaml if installed)'),
-        DeclareLaunchArgument('planner_params', default_value='',
-                              description='YAML parameter file of dp_planner '
-                                          '(empty: mm_planner/config/dp_planner.yaml if installed)'),
+        params_argument('sim_params', 'mm_sim', 'arm_sim'),
+        params_argument('embedding_params', 'mm_manifold', 'image_embedding'),
+        params_argument('planner_params', 'mm_planner', 'dp_planner'),
         DeclareLaunchArgument('lockstep', default_value='',
                               description='Simulator timing: true = lockstep, false = free-running, '
                                           'empty = as configured'),
         DeclareLaunchArgument('use_sim_time', default_value='true',
                               description='Learning and planning nodes follow the simulator /clock'),
-        DeclareLaunchArgument('record', default_value='false',
-                              description='Also start the mm recorder (rosbag2 layout, MCAP storage)'),
-        DeclareLaunchArgument('bag', default_value='results/arm_experiment_bag',
-                              description='Bag directory the recorder creates (relative to the working directory)'),
-        DeclareLaunchArgument('overwrite', default_value='false',
-                              description='Replace an existing bag directory'),
-        DeclareLaunchArgument('compression', default_value='none',
-                              description='MCAP chunk compression: none, zstd or lz4'),
+        *recorder_arguments('results/arm_experiment_bag'),
         OpaqueFunction(function=_launch_graph),
     ])
