@@ -25,7 +25,7 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mm_bringup.bench.arm_task import (choose_task, execute_plan, explore, learn_placement,  # noqa: E402
+from mm_bringup.bench.arm_task import (choose_task, execute_plan, learn_placement,  # noqa: E402
                                        truth_cell_map)
 from mm_manifold.embedding import ImageEmbedding, format_confusion, synthetic_keypoint_frames  # noqa: E402
 from mm_manifold.keypoints import KeypointExtractor, NearestImputer  # noqa: E402

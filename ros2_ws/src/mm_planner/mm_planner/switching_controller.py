@@ -13,7 +13,7 @@ candidate), with a small cost on wheel travel so rotating in place is preferred 
 from __future__ import annotations
 
 from itertools import product
-from typing import Optional, Tuple
+from typing import Optional
 
 import numpy as np
 

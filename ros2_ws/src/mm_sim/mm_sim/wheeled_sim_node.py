@@ -18,7 +18,6 @@ import math
 from typing import List
 
 import numpy as np
-import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point
 from mm_common.node_utils import declare, reject_non_finite, run_node
