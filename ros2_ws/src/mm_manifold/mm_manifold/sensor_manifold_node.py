@@ -58,7 +58,9 @@ class SensorManifold(Node):
                                   'persisted)', read_only=True)
         self.hold_steps = declare(self, 'hold_steps', 3, 'Lost (NaN) readings bridged with the last value for '
                                   'this many steps', min_value=0, max_value=100)
-        self.command_wait = declare(self, 'command_wait', 0.2, 'Wall seconds a sample waits for the command that '
+        # Longer than the controller ever takes to answer (it may itself wait for a bumper reading), so that only a
+        # reset or a lost command breaks the chain; a reset's first state comes this much later.
+        self.command_wait = declare(self, 'command_wait', 1.0, 'Wall seconds a sample waits for the command that '
                                     'produced it before it counts as a break in the chain', min_value=0.0,
                                     max_value=5.0)
         if len(self.grid_shape) != 2 or min(self.grid_shape) < 3:

@@ -13,6 +13,7 @@ through the `wheeled/set_goal` service. The learned model is read from the file 
 from __future__ import annotations
 
 import math
+import time
 from typing import Optional
 
 import numpy as np
@@ -21,6 +22,7 @@ from mm_manifold.sensor_manifold import SensorManifoldModel
 from mm_msgs.msg import ControllerStatus, ManifoldState, SensorGoal
 from mm_msgs.srv import SetSensorGoal
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from builtin_interfaces.msg import Time
@@ -52,6 +54,8 @@ class SwitchingControllerNode(Node):
                                  'gives none', min_value=1e-4, max_value=0.2)
         self.max_reach_steps = declare(self, 'max_reach_steps', 1500, 'Steps before a reach counts as failed',
                                        min_value=1, max_value=1_000_000)
+        self.bumper_wait = declare(self, 'bumper_wait', 0.2, 'Wall seconds a state waits for its bumper reading '
+                                   'while exploring', min_value=0.0, max_value=5.0)
         seed = declare(self, 'random_seed', 0, 'Seed of the exploration', min_value=0, max_value=2**31 - 1)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
@@ -64,6 +68,11 @@ class SwitchingControllerNode(Node):
         self.phase_step = 0
         self.explored = 0
         self.bumped = False
+        # The bumper reading of a step travels on its own topic and may arrive after the state: in lockstep the
+        # first bumper message after a command belongs to the step that command produced, so the explorer (whose
+        # reflex reads it) answers a state only once it came, or after `bumper_wait` wall seconds.
+        self.bumper_since_command = False
+        self.state_wall = 0.0
         self.pending: Optional[ManifoldState] = None
         self.state_stamp = None
         self.last_answered = -1
@@ -74,7 +83,8 @@ class SwitchingControllerNode(Node):
                                                  LOOP_QOS)
         self.status_pub = self.create_publisher(ControllerStatus, 'wheeled/controller/status', LOOP_QOS)
         self.create_subscription(ManifoldState, 'wheeled/manifold/state', self._on_state, LOOP_QOS)
-        self.create_subscription(Bool, 'wheeled/bumper', lambda m: setattr(self, 'bumped', bool(m.data)), LOOP_QOS)
+        self.create_subscription(Bool, 'wheeled/bumper', self._on_bumper, LOOP_QOS)
+        self.create_timer(0.05, self._on_wall_timer, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.create_subscription(String, 'wheeled/manifold/model', self._on_model, LATCHED_QOS)
         self.create_subscription(SensorGoal, 'wheeled/goal', self._on_goal_topic, LATCHED_QOS)
         self.create_service(SetSensorGoal, 'wheeled/set_goal', self._on_set_goal)
@@ -83,7 +93,7 @@ class SwitchingControllerNode(Node):
         result = reject_non_finite(params)
         if result.successful:
             for p in params:
-                if p.name in ('tolerance', 'max_reach_steps', 'max_wheel_speed'):
+                if p.name in ('tolerance', 'max_reach_steps', 'max_wheel_speed', 'bumper_wait'):
                     setattr(self, p.name, p.value)
         return result
 
@@ -167,12 +177,28 @@ class SwitchingControllerNode(Node):
         waypoint, coordinates, fallbacks = self.model.virtual_.goal_route(reading)
         return coordinates, waypoint, fallbacks
 
+    def _on_bumper(self, msg: Bool) -> None:
+        self.bumped = bool(msg.data)
+        self.bumper_since_command = True
+        if self.pending is not None and self.phase == ControllerStatus.PHASE_EXPLORING:
+            self._answer(self.pending)
+
+    def _on_wall_timer(self) -> None:
+        """A state whose bumper reading never came (a lost message) is answered after bumper_wait."""
+        if (self.pending is not None and self.phase == ControllerStatus.PHASE_EXPLORING
+                and time.monotonic() - self.state_wall > self.bumper_wait):
+            self.bumper_since_command = True
+            self._answer(self.pending)
+
     def _on_state(self, msg: ManifoldState) -> None:
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         if stamp <= self.last_answered:
             return
         self.state_stamp = msg.header.stamp
         self.pending = msg
+        self.state_wall = time.monotonic()
+        if self.phase == ControllerStatus.PHASE_EXPLORING and not self.bumper_since_command:
+            return
         self._answer(msg)
 
     # --- control ------------------------------------------------------------------------------------------------
@@ -192,6 +218,7 @@ class SwitchingControllerNode(Node):
         if command is not None:
             self.last_answered = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
             self.pending = None
+            self.bumper_since_command = False
             self.command_pub.publish(Float64MultiArray(data=[float(v) for v in command]))
         self._status(error, target)
 
