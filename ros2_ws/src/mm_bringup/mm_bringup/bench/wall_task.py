@@ -68,15 +68,23 @@ def run_condition(work_dir: Path, n_tasks: int, exploration_steps: int, toleranc
         paper_reading = sensor2_goal_reading(robot, PAPER_GOAL_POSE)
         paper = score(robot, graph.run_episode(PAPER_START, paper_reading, PAPER_TOLERANCE), PAPER_START,
                       PAPER_GOAL_POSE, paper_reading, PAPER_TOLERANCE)
-        episodes = []
+        episodes, stalls = [], 0
         for start, goal_pose in tasks:
             reading = sensor2_goal_reading(robot, goal_pose)
-            episodes.append(score(robot, graph.run_episode(start, reading, tolerance), start, goal_pose, reading,
-                                  tolerance))
+            try:
+                episode = graph.run_episode(start, reading, tolerance, timeout=120.0)
+            except TimeoutError as exc:   # counted as a failure; the next task's reset restarts the loop
+                stalls += 1
+                episodes.append({'success': False, 'reached': False, 'final_error': math.inf, 'path_ratio': math.nan,
+                                 'blind_fraction': math.nan, 'steps': 0, 'wall_seconds': 120.0,
+                                 'final_heading': math.nan, 'detail': f'stalled: {exc}'})
+                continue
+            episodes.append(score(robot, episode, start, goal_pose, reading, tolerance))
     ok = [e for e in episodes if e['success']]
     finite_errors = [e['final_error'] for e in episodes]
     return {
         'tasks': n_tasks,
+        'stalled_episodes': stalls,
         'success_rate': len(ok) / n_tasks,
         'median_final_error': float(np.median(finite_errors)),
         'median_path_ratio': float(np.median([e['path_ratio'] for e in ok])) if ok else None,
