@@ -7,7 +7,8 @@ into one sample per simulator step, and its own `wheeled/wheel_velocity_controll
 the robot to a sample travels on another topic and may arrive after the sample's readings, so a sample with no command
 yet waits for it up to `command_wait` wall seconds. A sample that does not follow exactly one command (a reset, a lost
 command) breaks the chain of consecutive samples: it is not used as a Jacobian pair and the state tracker starts
-afresh from it.
+afresh from it. A step the simulator re-publishes (it does so until the loop starts) is no new sample: its state is
+sent again so a controller that joined late can start the loop.
 
 After `learn_after` samples the SensorManifoldModel (dimension, elastic grid, Jacobians, virtual sensor space) is
 fitted in a background thread, and refitted every `refit_every` further samples. The model is saved atomically to
@@ -73,6 +74,8 @@ class SensorManifold(Node):
         self.pending: Dict[int, List[float]] = {}
         self.commands_since_sample: List[np.ndarray] = []
         self.waiting: Optional[tuple] = None      # (reading, stamp, steady time) of a sample waiting for its command
+        self.last_sample_ns: Optional[int] = None  # stamp of the newest sample taken
+        self.last_state: Optional[ManifoldState] = None
         self.rejected = 0
         self.model: Optional[SensorManifoldModel] = None
         self.tracker: Optional[StateTracker] = None
@@ -196,6 +199,12 @@ class SensorManifold(Node):
             del self.pending[stamp]
             for old in [s for s in self.pending if s < stamp]:   # incomplete older steps never complete
                 del self.pending[old]
+            if self.last_sample_ns is not None and stamp <= self.last_sample_ns:
+                # A re-published (or stale) step: already a sample. Re-send its state unless it still waits.
+                if stamp == self.last_sample_ns and self.waiting is None and self.last_state is not None:
+                    self.state_pub.publish(self.last_state)
+                return
+            self.last_sample_ns = stamp
             reading = np.asarray(values[:5], dtype=float)
             if self.waiting is not None:             # the earlier sample's command will not come any more
                 waiting, self.waiting = self.waiting, None
@@ -252,6 +261,7 @@ class SensorManifold(Node):
                                                 / max(self._mean_excursion_steps(), 1.0))
             self._publish_jacobian(space, coords, s2, stamp)
         self.state_pub.publish(msg)
+        self.last_state = msg
 
     def _mean_excursion_steps(self) -> float:
         steps = [len(e.commands) for e in getattr(self.model, 'excursions_', []) if e.end is not None]

@@ -100,6 +100,22 @@ def test_five_ranges_of_one_stamp_make_one_state(rig):
     assert len(rig.node.readings) == 2
 
 
+def test_a_republished_step_is_no_new_sample_but_its_state_is_sent_again(rig):
+    """The simulator re-publishes its first step until a command comes (late joiners): one sample, two states."""
+    rig.publish_step(1, [0.5, 0.6, 0.7, INF, INF])
+    rig.wait_states(1)
+    rig.publish_step(1, [0.5, 0.6, 0.7, INF, INF])
+    again = rig.wait_states(2)
+    assert again.header.stamp.sec == 1 and again.samples == 1 and len(rig.node.readings) == 1
+    rig.publish_step(0, [0.5, 0.6, 0.7, INF, INF])     # older than the newest sample: stale, dropped
+    rig.command([1.0, 1.0])
+    assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 1)
+    rig.publish_step(2, [0.5, 0.6, 0.8, INF, INF])
+    state = rig.wait_states(3)
+    assert state.header.stamp.sec == 2 and state.samples == 2 and len(rig.states) == 3
+    assert rig.node.continuous == [True]
+
+
 def test_bad_commands_are_ignored_and_a_missing_command_breaks_the_chain(rig):
     rig.publish_step(1, [0.5, 0.6, 0.7, INF, INF])
     rig.wait_states(1)
