@@ -2,7 +2,9 @@
 motion", and Fig. 3: "repeats motion in and out of the sensing range").
 
 Wander: piecewise-constant random wheel commands (rotations, straight runs, arcs) with a reflex that backs off when a
-front reading is very small and drives forward when the wall is at the edge of the front range. Excursion: from
+front reading is very small, drives away from a bumper contact (opposite to the last command's travel: a robot that
+reversed into the wall must not keep reversing), and drives forward when the wall is at the edge of the front range.
+A lost reading (NaN) is unknown, not out of range: the last valid value of that sensor stands in for it. Excursion: from
 inside sensor-1 range, a random rotation / run / rotation leaves the range (often into sensor 2's), then the robot
 undoes the segments in a different order, so it comes back near - not exactly at - where it left; if that does not
 bring sensor 1 back, it retraces every command since it left (differential drive is exactly reversible), which
@@ -50,6 +52,8 @@ class RandomExplorer:
         self.since_in_range: List[np.ndarray] = []
         self.mode = 'wander'
         self.excursions_started = 0
+        self.last_valid = np.full(len(SENSOR1) + len(SENSOR2), np.inf)
+        self.last_command = np.zeros(2)
 
     def _segment(self, command, steps) -> List[np.ndarray]:
         return [np.asarray(command, dtype=float)] * int(max(1, steps))
@@ -115,6 +119,9 @@ class RandomExplorer:
     def command(self, readings: np.ndarray, bumped: bool = False) -> np.ndarray:
         """Next wheel command [left, right] from the current readings (NaN = lost, +-inf = out of range)."""
         readings = np.asarray(readings, dtype=float)
+        lost = np.isnan(readings)
+        readings = np.where(lost, self.last_valid, readings)
+        self.last_valid = readings
         front = readings[list(SENSOR1)]
         in_range = bool(np.all(np.isfinite(front)))
         too_close = bumped or bool(np.any(np.isfinite(front) & (front < self.near))) or bool(np.any(front == -np.inf))
@@ -123,9 +130,11 @@ class RandomExplorer:
                 self.mode = 'wander'
                 self.plan.clear()
         if too_close and self.mode != 'retrace':
+            # Away from the contact: backwards, unless the robot got there reversing (bumper only).
+            away = 1.0 if bumped and np.sum(self.last_command) < 0 else -1.0
             self.plan.clear()
             self.practice_left = 0
-            self.plan.extend(self._segment([-self.drive_speed, -self.drive_speed], 6))
+            self.plan.extend(self._segment([away * self.drive_speed] * 2, 6))
             self.mode = 'wander'
         in_range2 = bool(np.all(np.isfinite(readings[list(SENSOR2)])))
         if self.practice_left > 0:
@@ -149,4 +158,5 @@ class RandomExplorer:
             self.since_in_range = [cmd]       # the command that may take us out is the first one to undo
         elif self.mode != 'retrace':
             self.since_in_range.append(cmd)
+        self.last_command = cmd
         return cmd.copy()
