@@ -121,7 +121,7 @@ def fig13(out: Path, seed: int = 3, n_frames: int = 500) -> None:
     task = choose_task(model, grid, truth_cell_map(model, grid), np.random.default_rng(seed))
     model, learner, _ = learn_placement(seed, n_frames, KeypointExtractor())
     planner = DPPlanner(grid)
-    planner.update_collision(learner.collision_map_)
+    planner.update_collision(learner.collision_map_, learner.closeness_map_)
     run = execute_plan(model, grid, planner, task[0], task[1], JointMotion(model))
     traj = run['trajectory']
     picks = np.unique(np.linspace(0, len(traj) - 1, 6).round().astype(int))

@@ -16,7 +16,9 @@ cells while the region is fitted for the best TPR - FPR on single frames), and a
 least `cell_collision_fraction` of its frames count as collision. Frames are assigned to the cell
 that contains their joint angles; a cell holding fewer than `cell_min_frames` frames takes the nearest frames (joint
 distance in units of the cell size) up to that number, so sparsely explored cells still get a prediction. The cell's
-closeness is the largest closeness of those frames (the most contact-like view seen there).
+closeness is the largest closeness of those frames (the most contact-like view seen there). The planner uses it to
+keep clear of the region (mm_planner.value_iteration.clearance_rewards): a cell the object only partly covers often
+has no contact frame and too few frames near the region to be marked, but its closeness is still high.
 """
 from __future__ import annotations
 

@@ -14,7 +14,8 @@ it refits after every
 Publishes `arm/embedding/state` (mm_msgs/EmbeddingState) for every image - with `model_ready` false before the first
 fit, so a lockstep explorer can pace itself on it - and `arm/embedding/collision_map` (mm_msgs/CollisionMap,
 TRANSIENT_LOCAL so a late planner gets the latest map) after each fit. How a cell is predicted: see
-mm_manifold.arm_learning (share of the cell's training frames whose region closeness is at least -map_margin).
+mm_manifold.arm_learning (share of the cell's training frames whose region closeness is at least -map_margin); the
+map also carries each cell's closeness, from which dp_planner keeps clear of the contact region.
 
 With `model_path` set, each fitted model is written there atomically (np.savez + JSON, no pickle) and loaded at start;
 an unreadable file is logged as an error and the node learns again from scratch.

@@ -1,6 +1,7 @@
 """ArmStateLearner: collision map from the embedding, fast out-of-sample maps, saving/loading without pickle."""
 import numpy as np
 import pytest
+from scipy.ndimage import distance_transform_cdt
 
 from mm_manifold.arm_evaluation import sample_exploration_joints
 from mm_manifold.arm_learning import ArmStateLearner, ModelFileError, cell_map
@@ -66,6 +67,18 @@ def test_collision_map_marks_the_cells_where_contact_frames_are(fitted):
     assert np.mean(pred == new_contact) > 0.75
 
 
+def test_closeness_map_falls_off_with_the_distance_from_the_collision_cells(fitted):
+    # The planner keeps clear of the contact region by this map (mm_planner.value_iteration.clearance_rewards, which
+    # charges closeness above -1 by default): free cells next to predicted collision cells must read as close, cells
+    # farther away clearly less so.
+    learner, _, _ = fitted
+    close = learner.closeness_map_
+    assert np.all(close[learner.collision_map_] >= -learner.map_margin)
+    steps = distance_transform_cdt(~learner.collision_map_, metric='taxicab')    # grid moves to a collision cell
+    assert np.median(close[steps == 1]) > -1.0
+    assert np.median(close[steps == 1]) > np.median(close[steps >= 3]) + 0.5
+
+
 def test_save_load_round_trip_and_corrupt_files(fitted, tmp_path):
     learner, new_kps, _ = fitted
     path = tmp_path / 'model.npz'
@@ -73,6 +86,7 @@ def test_save_load_round_trip_and_corrupt_files(fitted, tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ['model.npz']        # no temp file left behind
     loaded = ArmStateLearner.load(path)
     np.testing.assert_array_equal(loaded.collision_map_, learner.collision_map_)
+    np.testing.assert_array_equal(loaded.closeness_map_, learner.closeness_map_)
     np.testing.assert_array_equal(loaded.train_stamps_, learner.train_stamps_)
     for k in new_kps[:5]:
         a, b = learner.transform(k), loaded.transform(k)
@@ -111,6 +125,7 @@ def test_each_contact_region_predicts_and_survives_saving(frames, region, tmp_pa
     assert loaded.region == region and loaded.selection_ == learner.selection_
     np.testing.assert_allclose(loaded.train_closeness_, learner.train_closeness_, atol=1e-12)
     np.testing.assert_array_equal(loaded.collision_map_, learner.collision_map_)
+    np.testing.assert_array_equal(loaded.closeness_map_, learner.closeness_map_)
     for k in kps[220:225]:
         a, b = learner.transform(k), loaded.transform(k)
         assert a['collision'] == b['collision'] and a['closeness'] == pytest.approx(b['closeness'], abs=1e-12)

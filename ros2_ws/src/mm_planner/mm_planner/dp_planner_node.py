@@ -12,9 +12,11 @@ Publishes joint targets on `arm/joint_position_controller/commands` and its phas
 Phases: EXPLORING (random joint targets from mm_planner.arm_exploration, `exploration_steps` commands) -> LEARNING
 (no commands until a collision map arrives; after `learning_timeout` wall seconds without one it explores
 `exploration_steps // 4` more steps) -> WAITING_FOR_GOAL -> PLANNING (mm_planner.value_iteration.DPPlanner: reward 0
-at the goal cell, -100 for predicted collision cells, -1 per step) -> EXECUTING (command the centre of the next cell
-until the arm is there, then the next; a changed map replans at once) -> GOAL_REACHED, or FAILED when no
-collision-free path exists on the predicted map or `max_execution_steps` pass. A new goal restarts planning.
+at the goal cell, -100 for predicted collision cells, -1 per step, plus down to `clearance_reward` for entering a free
+cell by its closeness to the contact region in the map, so paths keep clear of it when they can) -> EXECUTING
+(command the centre of the next cell until the arm is there, then the next; a changed map replans at once) ->
+GOAL_REACHED, or FAILED when no collision-free path exists on the predicted map or `max_execution_steps` pass. A new
+goal restarts planning.
 
 Lockstep: one command per received joint state; with `wait_for_embedding` the command for step k waits until the
 embedding of frame k is out too (so the learner sees every frame), at most `embedding_timeout` wall seconds.
@@ -85,10 +87,16 @@ class DpPlannerNode(Node):
                    declare(self, 'collision_reward', -100.0, 'Reward for entering a predicted collision cell',
                            max_value=0.0, read_only=True),
                    declare(self, 'goal_reward', 0.0, 'Reward for reaching the goal cell', read_only=True)]
+        clearance = dict(
+            clearance_reward=declare(self, 'clearance_reward', -5.0, 'Extra reward for entering a free cell on the '
+                                     'contact region\'s surface (0 = the paper\'s rewards only)', max_value=0.0,
+                                     read_only=True),
+            clearance=declare(self, 'clearance', 1.0, 'Closeness below -clearance costs nothing extra',
+                              min_value=1e-3, max_value=100.0, read_only=True))
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.grid = JointGrid(lim0, lim1, rows, cols)
-        self.planner = DPPlanner(self.grid, *rewards)
+        self.planner = DPPlanner(self.grid, *rewards, **clearance)
         self.explorer = ArmExplorer(self.grid.limits, contact_share=contact_share, spread=spread, random_state=seed)
         self.phase = P.PHASE_EXPLORING if self.exploration_steps > 0 else P.PHASE_LEARNING
         self.phase_step = 0
@@ -181,7 +189,13 @@ class DpPlannerNode(Node):
         if not np.allclose([*msg.joint0_limits, *msg.joint1_limits], self.grid.limits.ravel()):
             self.get_logger().error('collision map joint limits differ from ours; ignored', throttle_duration_sec=5.0)
             return
-        changed = self.planner.update_collision(np.array(msg.collision, bool).reshape(self.grid.shape))
+        closeness = (np.array(msg.closeness, float).reshape(self.grid.shape)
+                     if len(msg.closeness) == len(msg.collision) else None)
+        try:
+            changed = self.planner.update_collision(np.array(msg.collision, bool).reshape(self.grid.shape), closeness)
+        except ValueError as exc:
+            self.get_logger().error(f'collision map rejected: {exc}', throttle_duration_sec=5.0)
+            return
         self.have_map = True
         self.map_updates += 1
         self.get_logger().info(f'collision map {self.map_updates}: {sum(msg.collision)} collision cells'

@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from mm_planner.value_iteration import DPPlanner, JointGrid, MOVES, plan_path, value_iteration
+from mm_planner.value_iteration import (DPPlanner, JointGrid, MOVES, clearance_rewards, plan_path,
+                                        value_iteration)
 
 
 def test_small_grid_matches_hand_computed_values():
@@ -85,3 +86,54 @@ def test_dp_planner_replans_when_the_collision_map_changes():
     assert planner.next_cell((0, 3)) is None
     with pytest.raises(ValueError):
         planner.update_collision(np.zeros((3, 3), bool))
+
+
+def test_clearance_rewards_by_hand():
+    close = np.array([[0.5, 0.0, -0.5], [-1.0, -3.0, -np.inf]])
+    np.testing.assert_allclose(clearance_rewards(close, clearance_reward=-4.0, clearance=1.0),
+                               [[-4.0, -4.0, -2.0], [0.0, 0.0, 0.0]])
+    np.testing.assert_allclose(clearance_rewards(close, clearance_reward=-4.0, clearance=2.0)[0], [-4.0, -4.0, -3.0])
+    with pytest.raises(ValueError):
+        clearance_rewards(np.array([[np.nan]]))
+    with pytest.raises(ValueError):
+        clearance_rewards(close, clearance_reward=1.0)
+
+
+def test_clearance_reward_makes_the_path_keep_clear_of_the_contact_region():
+    # 3x6 grid, collision block at (2, 2..3). Closeness is high next to it (row 1, cols 1..4), low elsewhere: the
+    # shortest path (1, 0) -> (1, 5) runs along the block; with the clearance reward it detours by row 0 (2 steps
+    # more, but it passes no cell near the region).
+    grid = JointGrid((0.0, 1.0), (0.0, 1.0), rows=3, cols=6)
+    collision = np.zeros((3, 6), bool)
+    collision[2, 2:4] = True
+    closeness = np.full((3, 6), -3.0)
+    closeness[2, 2:4] = 0.5
+    closeness[1, 1:5] = -0.2
+    paper = DPPlanner(grid, clearance_reward=0.0)
+    paper.update_collision(collision, closeness)
+    paper.set_goal((1, 5))
+    assert paper.plan((1, 0)) == [(1, c) for c in range(6)]
+    planner = DPPlanner(grid, clearance_reward=-5.0, clearance=1.0)
+    planner.update_collision(collision, closeness)
+    planner.set_goal((1, 5))
+    path = planner.plan((1, 0), allow_collision=False)
+    assert path == [(1, 0), (0, 0)] + [(0, c) for c in range(1, 6)] + [(1, 5)]
+    np.testing.assert_allclose(planner.free_reward_[1, 1:5], -4.0)
+    # without a closeness map the planner uses the paper's rewards
+    assert planner.update_collision(collision) is True
+    assert planner.plan((1, 0)) == paper.plan((1, 0))
+    assert planner.update_collision(collision) is False
+
+
+def test_clearance_reward_never_trades_a_collision_cell_for_clearance():
+    # A wall of collision cells in row 1 with a gap at the far end; every cell is on the region's surface. The
+    # collision-free detour (24 moves, 23 of them at -1 - 5 = -138) is worse than crossing the wall at the paper's -100,
+    # so the collision reward must be lowered for the detour to stay the optimum.
+    collision = np.zeros((3, 12), bool)
+    collision[1, :11] = True
+    free_reward = np.full((3, 12), -5.0)
+    values, policy = value_iteration(collision, goal=(2, 0), free_reward=free_reward)
+    path = plan_path(values, (0, 0), (2, 0), collision=collision, policy=policy, allow_collision=False)
+    assert path is not None and len(path) - 1 == 11 + 2 + 11
+    assert plan_path(values, (0, 0), (2, 0), collision=collision, free_reward=free_reward) == path
+    np.testing.assert_allclose(values[0, 0], -6.0 * 23)

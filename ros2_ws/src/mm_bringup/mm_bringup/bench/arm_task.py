@@ -12,13 +12,13 @@ Parts and where they run:
 - Synthetic check (Section 3.4): plain modules; |Spearman| of the best LLE coordinate with hand-object distance.
 - DP success over random object placements: plain modules in this process, the same code the nodes run
   (mm_planner.arm_exploration explorer -> mm_sim.arm_motion joint motion -> ArmModel frames -> SIFT ->
-  mm_manifold.arm_learning.ArmStateLearner collision map -> mm_planner.value_iteration.DPPlanner, executed cell by
-  cell). A placement counts when a contact-free path between the chosen start and goal exists on the ground-truth
-  cell map and the straight joint-space move between them would touch the object ("object in the way"). Success =
-  the goal cell centre is reached and the hand never touches the object, checked on the swept motion of every
-  simulator step every 0.02 rad (stricter than arm_sim's touch sensor, which reads the pose of each frame; that
-  reading is counted too, `dp_sim_contact_count`). The learner's contact region is chosen per placement by
-  cross-validation on the exploration frames (`dp_region_counts`).
+  mm_manifold.arm_learning.ArmStateLearner collision and closeness maps -> mm_planner.value_iteration.DPPlanner with
+  its default clearance reward, executed cell by cell). A placement counts when a contact-free path between the
+  chosen start and goal exists on the ground-truth cell map and the straight joint-space move between them would
+  touch the object ("object in the way"). Success = the goal cell centre is reached and the hand never touches the
+  object, checked on the swept motion of every simulator step every 0.02 rad (stricter than arm_sim's touch sensor,
+  which reads the pose of each frame; that reading is counted too, `dp_sim_contact_count`). The learner's contact
+  region is chosen per placement by cross-validation on the exploration frames (`dp_region_counts`).
 - Full mode also runs one episode through the ROS graph (arm_sim + image_embedding + dp_planner as processes, see
   mm_bringup.arm_demo) and reports it under `graph_episode`.
 """
@@ -173,7 +173,7 @@ def dp_placements(n_placements: int, n_frames: int, seed0: int = 1000, max_seeds
             results.append(dict(seed=seed, success=False, reached=False, contact=False, learned=False))
             continue
         planner = DPPlanner(grid)
-        planner.update_collision(learner.collision_map_)
+        planner.update_collision(learner.collision_map_, learner.closeness_map_)
         t0 = time.perf_counter()
         planner.set_goal(task[1])
         solve_ms.append(1e3 * (time.perf_counter() - t0))
