@@ -27,7 +27,7 @@ from mm_manifold.virtual_space import Excursion, ExtrapolatedField, VirtualSenso
 SENSOR1 = (0, 1, 2)
 SENSOR2 = (3, 4)
 SPACE_NONE, SPACE_SENSOR1, SPACE_VIRTUAL, SPACE_SENSOR2 = 0, 1, 2, 3
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 
 def group_in_range(readings: np.ndarray, group) -> np.ndarray:
@@ -58,8 +58,8 @@ def find_excursions(R: np.ndarray, U: np.ndarray, continuous: np.ndarray) -> Lis
 
 class SensorManifoldModel:
     """Hyperparameters: dt, grid shape, polynomial degree of the Jacobian fields, virtual-space prior weight.
-    Learned: dimension_, grid_, field1_ (grid coords), regions1_, field2_ (sensor-2 readings), virtual_,
-    n_samples_, n_excursions_."""
+    Learned: dimension_, grid_, field1_ (grid coords), regions1_, field2_ (sensor-2 readings), sensor2_noise_ (std
+    of the sensor-2 reading noise, estimated from consecutive samples), virtual_, n_samples_, n_excursions_."""
 
     def __init__(self, dt: float, grid_rows: int = 10, grid_cols: int = 10, jacobian_degree: int = 2,
                  virtual_prior_weight: float = 1.0, random_state: Optional[int] = 0):
@@ -104,6 +104,7 @@ class SensorManifoldModel:
                                                                              (S21 - S20) / self.dt)
         else:
             self.field2_ = None
+        self.sensor2_noise_ = self._reading_noise(R[:, list(SENSOR2)], U, pair2)
 
         excursions = []
         for exit_k, reentry, last in find_excursions(R, U, continuous):
@@ -121,6 +122,20 @@ class SensorManifoldModel:
         self.n_samples_ = int(len(R))
         self.n_excursions_ = int(self.virtual_.n_excursions_)
         return self
+
+    def _reading_noise(self, S: np.ndarray, U: np.ndarray, pair: np.ndarray) -> np.ndarray:
+        """Std of the reading noise per sensor. The one-step prediction error e_k = s_{k+1} - s_k - J u_k dt holds
+        the noise of both readings, so consecutive errors share one noise sample with opposite signs:
+        cov(e_k, e_{k+1}) = -noise variance, while motion the field does not explain is not correlated that way."""
+        if self.field2_ is None:
+            return np.zeros(S.shape[1])
+        e = np.full((len(S) - 1, S.shape[1]), np.nan)
+        k = np.flatnonzero(pair)
+        e[k] = S[k + 1] - S[k] - self.field2_.rates(S[k], U[k]) * self.dt
+        both = np.isfinite(e[:-1]).all(axis=1) & np.isfinite(e[1:]).all(axis=1)
+        if both.sum() < 20:
+            return np.zeros(S.shape[1])
+        return np.sqrt(np.maximum(-np.mean(e[:-1][both] * e[1:][both], axis=0), 0.0))
 
     def grid_box(self) -> np.ndarray:
         """Coordinates covered by the grid: where sensor 1 was observed."""
@@ -156,6 +171,7 @@ class SensorManifoldModel:
         meta = {'format_version': FORMAT_VERSION, 'dt': self.dt, 'grid_rows': self.grid_rows,
                 'grid_cols': self.grid_cols, 'jacobian_degree': self.jacobian_degree,
                 'virtual_prior_weight': self.virtual_prior_weight, 'dimension': int(self.dimension_),
+                'sensor2_noise': [float(v) for v in self.sensor2_noise_],
                 'grid_residual': self.grid_.residual_, 'n_samples': self.n_samples_,
                 'n_excursions': self.n_excursions_,
                 'reentry_rms_before': self.virtual_.reentry_rms_before_,
@@ -180,6 +196,7 @@ class SensorManifoldModel:
             model = cls(meta['dt'], meta['grid_rows'], meta['grid_cols'], meta['jacobian_degree'],
                         meta['virtual_prior_weight'])
             model.dimension_ = meta['dimension']
+            model.sensor2_noise_ = np.asarray(meta['sensor2_noise'], dtype=float)
             model.n_samples_, model.n_excursions_ = meta['n_samples'], meta['n_excursions']
             model.sensor2_box_ = arrays['sensor2_box']
             grid = ElasticGrid(meta['grid_rows'], meta['grid_cols'])

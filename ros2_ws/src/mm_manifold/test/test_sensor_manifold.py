@@ -322,6 +322,27 @@ def test_find_excursions_break_in_real_exploration_data(train_log):
     assert len(find_excursions(R, U, broken)) == len(runs)           # nothing else changes
 
 
+# --- noisy readings (1 % of max range, 5 % lost): what the benchmark's noisy condition learns from ------------------
+NOISE_FRACTION = 0.01
+
+
+@pytest.fixture(scope='module')
+def noisy_log():
+    return explore(WheeledRobot(noise_range_fraction=NOISE_FRACTION, dropout=0.05, random_state=2), 10000,
+                   random_state=2, dt=DT)
+
+
+@pytest.fixture(scope='module')
+def noisy_model(noisy_log):
+    return SensorManifoldModel(DT).fit(noisy_log.readings, noisy_log.commands, noisy_log.continuous)
+
+
+def test_sensor2_reading_noise_is_learned(model, noisy_model, robot):
+    true_std = NOISE_FRACTION * robot.sensors[SENSOR2[0]].max_range          # 2.5 mm
+    np.testing.assert_allclose(noisy_model.sensor2_noise_, true_std, rtol=0.3)   # measured 2.3-2.5 mm
+    assert np.all(model.sensor2_noise_ < 0.1 * true_std)                        # noise-free readings: ~0
+
+
 # --- persistence -------------------------------------------------------------------------------------------------
 def test_save_load_round_trip(model, tmp_path, robot):
     path = tmp_path / 'sub' / 'model.npz'
@@ -348,6 +369,7 @@ def test_save_load_round_trip(model, tmp_path, robot):
     np.testing.assert_allclose(loaded.virtual_.step(coords[0], [1.0, -2.0]), model.virtual_.step(coords[0],
                                                                                                    [1.0, -2.0]))
     assert loaded.virtual_.reentry_rms_after_ == model.virtual_.reentry_rms_after_
+    np.testing.assert_array_equal(loaded.sensor2_noise_, model.sensor2_noise_)
 
 
 def test_load_rejects_missing_corrupt_and_foreign_files(model, tmp_path):

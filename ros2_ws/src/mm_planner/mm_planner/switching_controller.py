@@ -25,7 +25,8 @@ SPACE_NONE, SPACE_SENSOR1, SPACE_VIRTUAL, SPACE_SENSOR2 = 0, 1, 2, 3
 class SwitchingController:
     """Hyperparameters: dt, max_wheel_speed [rad/s], horizon [steps] of the virtual-space search, speed levels of
     its candidate set, travel_weight (cost of wheel travel relative to the squared goal error), tolerance [m] on each
-    sensor-2 reading, settle_steps (consecutive steps within tolerance before stopping), damping of the least-squares
+    sensor-2 reading, settle_steps / max_settle_steps (fewest / most steps standing still to decide whether the
+    reading is within tolerance: noisy readings need more of them), damping of the least-squares
     step, waypoint_tolerance [grid units], turn_speed / drive_speed [rad/s] of the sensor-2 manoeuvres, stall_steps
     (steps without progress toward the target before aiming at the next fallback), max_retries (times the route is
     restarted from the practised exit when every target was reached blind)."""
@@ -33,15 +34,19 @@ class SwitchingController:
     def __init__(self, dt: float, max_wheel_speed: float = 6.0, horizon: int = 12,
                  speed_levels=(1.0, 0.4, 0.12, 0.0), travel_weight: float = 1e-3, tolerance: float = 0.01,
                  settle_steps: int = 4, damping: float = 1e-2, waypoint_tolerance: float = 0.3,
-                 turn_speed: float = 1.5, drive_speed: float = 4.0, stall_steps: int = 20, max_retries: int = 3):
+                 turn_speed: float = 1.5, drive_speed: float = 4.0, stall_steps: int = 20, max_retries: int = 3,
+                 max_settle_steps: int = 30):
         if dt <= 0 or max_wheel_speed <= 0 or tolerance <= 0 or horizon < 1:
             raise ValueError('dt, max_wheel_speed, tolerance and horizon must be positive')
+        if not 2 <= settle_steps <= max_settle_steps:
+            raise ValueError('need 2 <= settle_steps <= max_settle_steps')
         self.dt = dt
         self.max_wheel_speed = max_wheel_speed
         self.horizon = horizon
         self.tolerance = tolerance
         self.travel_weight = travel_weight
         self.settle_steps = settle_steps
+        self.max_settle_steps = max_settle_steps
         self.damping = damping
         self.waypoint_tolerance = waypoint_tolerance
         self.stall_steps = stall_steps
@@ -75,11 +80,13 @@ class SwitchingController:
         return np.array(seqs), np.array(travel)
 
     def set_goal(self, sensor2_goal: np.ndarray, goal_coordinates: np.ndarray,
-                 waypoint: Optional[np.ndarray] = None, fallbacks: Optional[np.ndarray] = None) -> None:
+                 waypoint: Optional[np.ndarray] = None, fallbacks: Optional[np.ndarray] = None,
+                 sensor2_noise: Optional[np.ndarray] = None) -> None:
         """`waypoint`: where in sensor-1 range the practised excursions toward this goal left the range; the robot
         first goes there with sensor-1 control, then aims at the goal's virtual coordinates. `fallbacks`: virtual
         coordinates to aim at next if the goal's are reached while sensor 2 still does not see the wall (the virtual
-        estimate has drifted)."""
+        estimate has drifted). `sensor2_noise`: learned std of the sensor-2 reading noise; the stop decision never
+        trusts a few readings to be less noisy than that."""
         sensor2_goal = np.asarray(sensor2_goal, dtype=float)
         goal_coordinates = np.asarray(goal_coordinates, dtype=float)
         if sensor2_goal.ndim != 1 or not len(sensor2_goal) or goal_coordinates.ndim != 1:
@@ -88,6 +95,8 @@ class SwitchingController:
         if not (np.all(np.isfinite(sensor2_goal)) and np.all(np.isfinite(goal_coordinates))):
             raise ValueError('goal reading and coordinates must be finite')
         self.goal_sensor2 = sensor2_goal
+        self.sensor2_noise = np.zeros_like(sensor2_goal) if sensor2_noise is None else np.asarray(sensor2_noise,
+                                                                                                  dtype=float)
         self.goal_coordinates = goal_coordinates
         self.waypoint = None if waypoint is None else np.asarray(waypoint, dtype=float)
         self.fallbacks = [] if fallbacks is None else [np.asarray(f, dtype=float) for f in fallbacks]
@@ -180,22 +189,27 @@ class SwitchingController:
             raise ValueError('no goal set')
         if space == SPACE_SENSOR2:
             error = np.abs(sensor2 - self.goal_sensor2)
-            if np.all(error < self.tolerance):
+            if self.settled or np.all(error < self.tolerance):
                 if not sensor2_measured:      # hold still until sensor 2 itself confirms
                     return np.zeros(2), False, float(error.max())
-                # Within tolerance: stand still for settle_steps and decide on the mean reading, with its spread
-                # as a margin (noisy readings near the tolerance's edge must not end the task outside it).
+                # Within tolerance: stand still and decide on the mean reading (a sequential test). Done once the
+                # mean is within tolerance by three standard errors; moving on once it is outside by as much, or
+                # after max_settle_steps. Clean readings decide after settle_steps; noisy ones near the edge of
+                # the tolerance take longer instead of ending the task outside it by chance.
                 self.settled += 1
                 self._settle_readings.append(np.asarray(sensor2, dtype=float))
                 if self.settled >= self.settle_steps:
                     window = np.array(self._settle_readings)
-                    settled_error = np.abs(window.mean(axis=0) - self.goal_sensor2) + window.std(axis=0)
-                    if np.all(settled_error < self.tolerance):
-                        return np.zeros(2), True, float(settled_error.max())
-                    self.settled, self._settle_readings = 0, []
-                    self._plan = None
-                    u = self._best_manoeuvre(sensor2_field, window.mean(axis=0), self.goal_sensor2, sensor2_box)
-                    return u, False, float(settled_error.max())
+                    centre = np.abs(window.mean(axis=0) - self.goal_sensor2)
+                    spread = np.maximum(window.std(axis=0, ddof=1), self.sensor2_noise)
+                    margin = 3.0 * spread / np.sqrt(len(window))
+                    if np.all(centre + margin < self.tolerance):
+                        return np.zeros(2), True, float((centre + margin).max())
+                    if np.any(centre - margin >= self.tolerance) or self.settled >= self.max_settle_steps:
+                        self.settled, self._settle_readings = 0, []
+                        self._plan = None
+                        u = self._best_manoeuvre(sensor2_field, window.mean(axis=0), self.goal_sensor2, sensor2_box)
+                        return u, False, float(centre.max())
                 return np.zeros(2), False, float(error.max())
             self.settled, self._settle_readings = 0, []
             self._watch_progress(float(error.max()))

@@ -161,7 +161,7 @@ class SwitchingControllerNode(Node):
         reading = np.asarray(self.goal.reading, dtype=float)
         self.controller = SwitchingController(self.dt, max_wheel_speed=self.max_wheel_speed, tolerance=tolerance)
         try:
-            self.controller.set_goal(reading, *self._route(reading))
+            self.controller.set_goal(reading, *self._route(reading), sensor2_noise=self.model.sensor2_noise_)
         except ValueError as exc:
             self._set_phase(ControllerStatus.PHASE_FAILED, f'cannot map the goal: {exc}')
             self.goal = None
