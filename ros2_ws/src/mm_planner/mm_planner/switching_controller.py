@@ -101,6 +101,7 @@ class SwitchingController:
         self.waypoint = None if waypoint is None else np.asarray(waypoint, dtype=float)
         self.fallbacks = [] if fallbacks is None else [np.asarray(f, dtype=float) for f in fallbacks]
         self._route = (self.waypoint, self.goal_coordinates, list(self.fallbacks))
+        self._seen_in_range = []           # grid coordinates measured in this episode with sensor 1 in range
         self.retries = 0
         self.best_error, self.stalled_steps = np.inf, 0
         self.settled, self._settle_readings = 0, []
@@ -133,11 +134,14 @@ class SwitchingController:
         whose predicted end reading is closest to the goal (in tolerance units). A chosen manoeuvre is carried out
         to its end: re-choosing every step from slightly wrong predictions makes the robot dither between turning
         left and right. Manoeuvres predicted to leave `box` (2, d), the readings sensor 2 was seen at, are
-        discarded: there it would be lost and the field is extrapolating."""
+        discarded: there it would be lost and the field is extrapolating. The box is widened to hold the current
+        reading and the goal, both seen in range (a goal nearer the wall than exploration went must stay reachable)."""
         if self._plan is not None and len(self._plan):
             u, self._plan = self._plan[0], self._plan[1:]
             return u
         seqs = self.manoeuvres
+        if box is not None:
+            box = np.array([np.minimum.reduce([box[0], state, goal]), np.maximum.reduce([box[1], state, goal])])
         y = np.repeat(state[None], len(seqs), axis=0)
         leaves = np.zeros(len(seqs), dtype=bool)
         for t in range(seqs.shape[1]):
@@ -170,6 +174,22 @@ class SwitchingController:
             if len(self._avoid) >= len(self.manoeuvres) - 1:
                 self._avoid = set()
             self._chosen, self._s2_stalled = set(), 0
+
+    def _refuted(self, target: np.ndarray) -> bool:
+        """A target the robot has been at in this episode (by its measured grid coordinates) while sensor 1 saw the
+        wall and sensor 2 did not cannot be where the goal reading is: its virtual coordinates (learned from noisy
+        excursions) have drifted into sensor 1's range."""
+        if not self._seen_in_range:
+            return False
+        seen = np.asarray(self._seen_in_range)
+        return float(np.min(np.linalg.norm(seen - target, axis=1))) < self.waypoint_tolerance
+
+    def _next_target(self) -> None:
+        """Aim at the next fallback that this episode's sensor-1 readings have not refuted (the last one if all)."""
+        while len(self.fallbacks) > 1 and self._refuted(self.fallbacks[0]):
+            self.fallbacks.pop(0)
+        self.goal_coordinates = self.fallbacks.pop(0)
+        self.best_error, self.stalled_steps = np.inf, 0
 
     def jacobian_step(self, J: np.ndarray, error: np.ndarray) -> np.ndarray:
         """Damped least-squares Jacobian control: the wheel command that closes `error` in about `horizon` steps."""
@@ -221,6 +241,8 @@ class SwitchingController:
         if coordinates is None:
             return np.zeros(2), False, float('nan')
         coordinates = np.asarray(coordinates, dtype=float)
+        if space == SPACE_SENSOR1:
+            self._seen_in_range.append(coordinates)
         error = float(np.linalg.norm(self.target - coordinates))
         if error < self.best_error - 0.05:
             self.best_error, self.stalled_steps = error, 0
@@ -237,8 +259,7 @@ class SwitchingController:
         if self.waypoint is None and self.fallbacks and (self.stalled_steps > self.stall_steps
                                                          or error < self.waypoint_tolerance):
             # Arrived (as far as the estimate knows) or stuck, and sensor 2 sees nothing: aim deeper.
-            self.goal_coordinates = self.fallbacks.pop(0)
-            self.best_error, self.stalled_steps = np.inf, 0
+            self._next_target()
         elif (self.waypoint is None and not self.fallbacks and self.stalled_steps > self.stall_steps
               and self.retries < self.max_retries and self._route[0] is not None):
             # Every target reached blind and still no sensor 2: the virtual estimate has drifted too far. Go back
@@ -247,5 +268,7 @@ class SwitchingController:
             self.waypoint, self.goal_coordinates, fallbacks = self._route
             self.fallbacks = list(fallbacks)
             self.best_error, self.stalled_steps = np.inf, 0
+            if self.fallbacks and self._refuted(self.goal_coordinates):
+                self._next_target()
         u = self._best_constant_command(virtual_field, coordinates, self.target, 1.0, bounds)
         return u, False, float(np.linalg.norm(self.target - coordinates))

@@ -128,12 +128,19 @@ def test_jacobian_step_respects_the_speed_limit():
     np.testing.assert_allclose(J @ small * c.horizon * DT, error, rtol=0.03)   # closes the error in `horizon` steps
 
 
+def linear_field(seed=0):
+    """A sensor-2-like field: both readings grow when driving, rotation moves them apart."""
+    rng = np.random.default_rng(seed)
+    Y, U = rng.uniform(0.05, 0.25, (200, 2)), rng.uniform(-6.0, 6.0, (200, 2))
+    A = np.array([[0.01, 0.012], [0.012, 0.01]])
+    return PolynomialJacobianField(1).fit(Y, U, U @ A.T), A
+
+
 def settle_trials(offset, noise, n=500, seed=0):
     """Stand still with sensor-2 readings `offset` from the goal plus noise of std `noise` (learned by the model)
     until the controller decides: (share of trials that ended the task, median steps to the decision)."""
     rng = np.random.default_rng(seed)
-    Y, U = rng.uniform(0.05, 0.25, (200, 2)), rng.uniform(-6.0, 6.0, (200, 2))
-    field = PolynomialJacobianField(1).fit(Y, U, U @ np.array([[0.01, 0.012], [0.012, 0.01]]).T)
+    field, _ = linear_field(seed)
     goal, box = np.array([0.15, 0.15]), np.array([[0.02, 0.02], [0.25, 0.25]])
     reached, steps = [], []
     for _ in range(n):
@@ -157,6 +164,42 @@ def test_stop_decision_is_reliable_under_reading_noise():
     assert settle_trials(np.array([0.0101, 0.0]), 0.0)[0] == 0.0
     assert settle_trials(np.array([0.0105, 0.0]), 0.0025)[0] <= 0.005          # measured 0.002
     assert settle_trials(np.array([0.004, 0.0]), 0.0025)[0] >= 0.97            # measured 0.99
+
+
+def test_a_goal_beyond_the_explored_sensor2_readings_is_reached():
+    """Exploration saw side readings down to 0.12 m only; a goal of 0.10 m (shown to the robot, so seen in range)
+    must still be reachable: manoeuvres toward it are not discarded as leaving the known readings."""
+    field, A = linear_field()
+    box = np.array([[0.12, 0.12], [0.25, 0.25]])
+    goal, y = np.array([0.10, 0.10]), np.array([0.15, 0.16])
+    c = SwitchingController(DT, tolerance=0.005)
+    c.set_goal(goal, np.zeros(2))
+    for _ in range(600):
+        u, done, _ = c.command(SPACE_SENSOR2, None, y, None, field, sensor2_box=box)
+        if done:
+            break
+        y = y + A @ u * DT
+    assert done and np.all(np.abs(y - goal) < 0.005), y
+
+
+def test_a_target_seen_with_sensor1_in_range_is_skipped():
+    """Virtual coordinates that drifted into sensor 1's range (under noise): once the robot has stood at a target
+    while sensor 1 saw the wall and sensor 2 did not, it aims at the next fallback that it has not seen that way."""
+    field, _ = linear_field()
+    goal, seen, fresh = np.array([4.0, 7.0]), np.array([5.0, 7.5]), np.array([7.5, 10.0])
+    c = SwitchingController(DT)
+    c.set_goal(np.array([0.17, 0.17]), goal, fallbacks=np.array([seen, fresh]))
+    c.command(SPACE_SENSOR1, seen, None, field, None)          # passed by the second target in sensor-1 range
+    assert np.array_equal(c.target, goal)
+    c.command(SPACE_SENSOR1, goal + 0.1, None, field, None)   # at the goal's coordinates, still no sensor 2
+    c.command(SPACE_SENSOR1, goal + 0.1, None, field, None)
+    assert np.array_equal(c.target, fresh)
+    # Without such evidence the fallbacks are taken in order.
+    c.set_goal(np.array([0.17, 0.17]), goal, fallbacks=np.array([seen, fresh]))
+    c.command(SPACE_VIRTUAL, seen, None, field, None)          # blind there: no evidence against it
+    c.command(SPACE_VIRTUAL, goal + 0.1, None, field, None)
+    c.command(SPACE_VIRTUAL, goal + 0.1, None, field, None)
+    assert np.array_equal(c.target, seen)
 
 
 # --- closed-loop episodes with a learned model -------------------------------------------------------------------
