@@ -104,7 +104,8 @@ def test_explorer_always_comes_back_into_sensor1_range():
 # --- switching controller: construction and goals -----------------------------------------------------------
 def test_controller_validates_parameters_and_goals():
     for bad in (dict(dt=0.0), dict(dt=DT, max_wheel_speed=-1.0), dict(dt=DT, tolerance=0.0),
-                dict(dt=DT, horizon=0), dict(dt=DT, settle_steps=1), dict(dt=DT, settle_steps=8, max_settle_steps=5)):
+                dict(dt=DT, horizon=0), dict(dt=DT, settle_steps=1), dict(dt=DT, settle_steps=8, max_settle_steps=5),
+                dict(dt=DT, manoeuvre_travel_weight=-1e-3)):
         with pytest.raises(ValueError):
             SwitchingController(**bad)
     c = SwitchingController(DT)

@@ -54,6 +54,20 @@ def score(robot: WheeledRobot, episode, start, goal_pose, goal_reading, toleranc
             'detail': episode.detail}
 
 
+def run_task(graph: WallGraph, robot: WheeledRobot, start, goal_pose, tolerance: float,
+             timeout: float = 120.0) -> dict:
+    """One scored episode; a stalled lockstep loop (no outcome within `timeout` wall seconds) counts as a failure
+    and the next task's reset restarts the loop, so one stall does not end the benchmark."""
+    reading = sensor2_goal_reading(robot, goal_pose)
+    try:
+        episode = graph.run_episode(start, reading, tolerance, timeout=timeout)
+    except TimeoutError as exc:
+        return {'success': False, 'reached': False, 'final_error': math.inf, 'path_ratio': math.nan,
+                'blind_fraction': math.nan, 'steps': 0, 'wall_seconds': timeout, 'final_heading': math.nan,
+                'detail': f'stalled: {exc}'}
+    return score(robot, episode, start, goal_pose, reading, tolerance)
+
+
 def run_condition(work_dir: Path, n_tasks: int, exploration_steps: int, tolerance: float, noise_fraction: float,
                   dropout: float, seed: int) -> dict:
     robot = WheeledRobot()
@@ -65,21 +79,9 @@ def run_condition(work_dir: Path, n_tasks: int, exploration_steps: int, toleranc
         graph.wait_learned(timeout=1800.0)
         learning_seconds = time.monotonic() - began
         learning_samples = graph.samples
-        paper_reading = sensor2_goal_reading(robot, PAPER_GOAL_POSE)
-        paper = score(robot, graph.run_episode(PAPER_START, paper_reading, PAPER_TOLERANCE), PAPER_START,
-                      PAPER_GOAL_POSE, paper_reading, PAPER_TOLERANCE)
-        episodes, stalls = [], 0
-        for start, goal_pose in tasks:
-            reading = sensor2_goal_reading(robot, goal_pose)
-            try:
-                episode = graph.run_episode(start, reading, tolerance, timeout=120.0)
-            except TimeoutError as exc:   # counted as a failure; the next task's reset restarts the loop
-                stalls += 1
-                episodes.append({'success': False, 'reached': False, 'final_error': math.inf, 'path_ratio': math.nan,
-                                 'blind_fraction': math.nan, 'steps': 0, 'wall_seconds': 120.0,
-                                 'final_heading': math.nan, 'detail': f'stalled: {exc}'})
-                continue
-            episodes.append(score(robot, episode, start, goal_pose, reading, tolerance))
+        paper = run_task(graph, robot, PAPER_START, PAPER_GOAL_POSE, PAPER_TOLERANCE)
+        episodes = [run_task(graph, robot, start, goal_pose, tolerance) for start, goal_pose in tasks]
+    stalls = sum(e['detail'].startswith('stalled') for e in episodes + [paper])
     ok = [e for e in episodes if e['success']]
     finite_errors = [e['final_error'] for e in episodes]
     return {
