@@ -149,7 +149,6 @@ class WallGraph:
             self.episode.add_state(msg)
 
     # --- experiment steps -------------------------------------------------------------------------------------------
-    # --- experiment steps -------------------------------------------------------------------------------------------
     def _check_alive(self) -> None:
         for n in self.nodes:
             if n.process.poll() is not None:

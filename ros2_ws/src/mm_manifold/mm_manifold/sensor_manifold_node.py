@@ -11,7 +11,9 @@ afresh from it. A step the simulator re-publishes (it does so until the loop sta
 sent again so a controller that joined late can start the loop.
 
 After `learn_after` samples the SensorManifoldModel (dimension, elastic grid, Jacobians, virtual sensor space) is
-fitted in a background thread, and refitted every `refit_every` further samples. The model is saved atomically to
+fitted in a background thread, and refitted every `refit_every` further samples - and after `learn_after // 4`
+more when sensor 2 was not seen during the excursions (such a model cannot map a sensor-2 goal, so the controller
+explores on; this happens in a few noisy explorations). The model is saved atomically to
 `model_path` (np.savez + JSON) and announced on the latched `wheeled/manifold/model` topic; a saved model is loaded
 at start, so a restart does not relearn. Every sample gives one `wheeled/manifold/state` (and a Jacobian estimate).
 """
@@ -164,9 +166,13 @@ class SensorManifold(Node):
         m = self.fit_result
         self._install(m)
         self.get_logger().info(
-            f'model ready: dimension {m.dimension_}, grid residual {m.grid_.residual_:.4f} m, '
-            f'{m.n_excursions_} excursions, re-entry RMS {m.virtual_.reentry_rms_before_:.2f} -> '
-            f'{m.virtual_.reentry_rms_after_:.2f} grid units, {len(m.virtual_.overlap_sensor2_)} overlap samples')
+            f'model {"ready" if m.ready else "fitted"}: dimension {m.dimension_}, grid residual '
+            f'{m.grid_.residual_:.4f} m, {m.n_excursions_} excursions, re-entry RMS '
+            f'{m.virtual_.reentry_rms_before_:.2f} -> {m.virtual_.reentry_rms_after_:.2f} grid units, '
+            f'{len(m.virtual_.overlap_sensor2_)} overlap samples')
+        if not m.ready:
+            self.get_logger().warn(f'sensor 2 was not seen during the excursions: no sensor-2 goal can be mapped; '
+                                   f'refitting after {max(self.learn_after // 4, 1)} more samples')
 
     # --- inputs -------------------------------------------------------------------------------------------------
     def _on_command(self, msg: Float64MultiArray) -> None:
@@ -228,9 +234,11 @@ class SensorManifold(Node):
         self.commands_since_sample = []
         self.readings.append(reading)
         n = len(self.readings)
-        if self.fitting is None and ((self.model is None and n >= self.learn_after and n > self.fitted_samples)
-                                     or (self.model is not None and self.refit_every
-                                         and n - self.fitted_samples >= self.refit_every)):
+        more = n - self.fitted_samples
+        if self.fitting is None and ((self.model is None and n >= self.learn_after and more > 0)
+                                     or (self.model is not None and self.refit_every and more >= self.refit_every)
+                                     or (self.model is not None and not self.model.ready
+                                         and more >= max(self.learn_after // 4, 1))):
             self._start_fit()
         self._publish(reading, command, stamp)
 

@@ -186,6 +186,35 @@ def test_loads_saved_model_announces_it_and_tracks_the_state(model_file):
         rig.ros.close()
 
 
+def test_a_model_that_has_not_seen_sensor2_is_refitted_after_more_samples(model_file, tmp_path):
+    """Such a model cannot map a sensor-2 goal (the controller explores on): after learn_after // 4 more samples
+    the node fits again; a ready model is kept (refit_every 0)."""
+    path, _ = model_file
+    blind = SensorManifoldModel.load(path)
+    blind.virtual_.overlap_coordinates_ = blind.virtual_.overlap_exits_ = np.zeros((0, 2))
+    blind.virtual_.overlap_sensor2_ = np.zeros((0, 2))
+    blind_path = tmp_path / 'blind_model.npz'
+    blind.save(blind_path)
+    reading = WheeledRobot().read((0.0, 0.6, -math.pi / 2), noisy=False)
+    for model_path, refits in ((blind_path, True), (path, False)):
+        rig = Rig({'model_path': str(model_path), 'learn_after': 100})
+        try:
+            assert rig.node.model is not None and rig.node.model.ready is not refits
+            for sec in range(1, 27):
+                rig.publish_step(sec, reading)
+                rig.wait_states(sec)
+                rig.command([1.0, 1.0])
+                assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 1)
+            if refits:
+                # a fit on the 25 samples since the start (100 // 4); too few to succeed, but it was tried
+                assert rig.ros.spin_until(lambda: rig.node.fitted_samples != 0)
+            else:
+                rig.ros.spin_for(0.3)
+                assert rig.node.fitted_samples == 0 and rig.node.fitting is None
+        finally:
+            rig.ros.close()
+
+
 @pytest.mark.parametrize('damage', ['truncated', 'garbage', 'other_dt'])
 def test_unusable_model_file_means_learning_anew(model_file, tmp_path, damage):
     path, _ = model_file

@@ -4,8 +4,9 @@
 
 One wheel command per `wheeled/manifold/state` (the lockstep loop: simulator -> manifold -> controller ->
 simulator). Phases, published on `wheeled/controller/status`: EXPLORING (RandomExplorer: random motion with a
-reflex on the readings and the bumper) -> LEARNING (no commands: the loop pauses while the manifold node fits) ->
-WAITING_FOR_GOAL -> REACHING_SENSOR1 / REACHING_VIRTUAL_SENSOR1 / REACHING_SENSOR2 (SwitchingController) ->
+reflex on the readings and the bumper) -> LEARNING (no commands: the loop pauses while the manifold node fits;
+a model that has not seen sensor 2 during its excursions cannot map any goal, so `exploration_steps // 4` more
+exploration steps follow, until the manifold node's refit has) -> WAITING_FOR_GOAL -> REACHING_SENSOR1 / REACHING_VIRTUAL_SENSOR1 / REACHING_SENSOR2 (SwitchingController) ->
 GOAL_REACHED or FAILED (then waiting again). Goals come as mm_msgs/SensorGoal on `wheeled/goal` (latched) or
 through the `wheeled/set_goal` service. The learned model is read from the file the manifold node announces on
 `wheeled/manifold/model`. Nothing here sees world coordinates.
@@ -67,6 +68,7 @@ class SwitchingControllerNode(Node):
         self.phase = ControllerStatus.PHASE_EXPLORING if self.exploration_steps else ControllerStatus.PHASE_LEARNING
         self.phase_step = 0
         self.explored = 0
+        self.exploration_budget = self.exploration_steps    # grows when the learned model is not ready
         self.bumped = False
         # The bumper reading of a step travels on its own topic and may arrive after the state: in lockstep the
         # first bumper message after a command belongs to the step that command produced, so the explorer (whose
@@ -99,9 +101,12 @@ class SwitchingControllerNode(Node):
 
     # --- phase bookkeeping ----------------------------------------------------------------------------------------
     def _set_phase(self, phase: int, detail: str) -> None:
-        if phase != self.phase:
+        """Enter `phase` (its step count restarts); a new detail in the same phase (another goal) is logged too."""
+        if phase != self.phase or detail != self.detail:
             self.get_logger().info(f'{PHASE_NAMES[self.phase]} -> {PHASE_NAMES[phase]}: {detail}')
-            self.phase, self.phase_step, self.detail = phase, 0, detail
+        if phase != self.phase:
+            self.phase, self.phase_step = phase, 0
+        self.detail = detail
 
     def _status(self, error: float = math.nan, target=()) -> None:
         msg = ControllerStatus()
@@ -123,8 +128,16 @@ class SwitchingControllerNode(Node):
             self.get_logger().error(str(exc))
             return
         self.get_logger().info(f'model loaded from {msg.data}')
-        if self.phase in (ControllerStatus.PHASE_LEARNING, ControllerStatus.PHASE_EXPLORING):
-            if self.phase == ControllerStatus.PHASE_EXPLORING and self.explored < self.exploration_steps:
+        if not self.model.ready:
+            if self.phase == ControllerStatus.PHASE_LEARNING:
+                extra = max(self.exploration_steps // 4, 1)
+                self.exploration_budget = self.explored + extra
+                self._set_phase(ControllerStatus.PHASE_EXPLORING, f'the model has not seen sensor 2: exploring '
+                                                                  f'{extra} more steps')
+                if self.pending is not None:
+                    self._answer(self.pending)
+        elif self.phase in (ControllerStatus.PHASE_LEARNING, ControllerStatus.PHASE_EXPLORING):
+            if self.phase == ControllerStatus.PHASE_EXPLORING and self.explored < self.exploration_budget:
                 self.detail = 'a learned model exists: exploration skipped'
             self._set_phase(ControllerStatus.PHASE_WAITING_FOR_GOAL, 'model ready')
             self._start_goal()
@@ -148,30 +161,33 @@ class SwitchingControllerNode(Node):
         if not (goal.tolerance == 0.0 or (math.isfinite(goal.tolerance) and 0 < goal.tolerance < 0.2)):
             return False, f'tolerance {goal.tolerance} out of (0, 0.2) m'
         self.goal = goal
-        self._start_goal()
+        problem = self._start_goal()
         self._status()
-        return True, 'accepted'
+        return (False, problem) if problem else (True, 'accepted')
 
-    def _start_goal(self) -> None:
-        """Begin reaching once there is both a goal and a model; answer a state that is already waiting."""
+    def _start_goal(self) -> Optional[str]:
+        """Begin reaching once there is both a goal and a model; answer a state that is already waiting. A goal the
+        model cannot map ends FAILED under that goal's stamp (so whoever sent it sees the outcome); returns why."""
         if self.goal is None or self.model is None or self.phase in (ControllerStatus.PHASE_EXPLORING,
                                                                      ControllerStatus.PHASE_LEARNING):
-            return
+            return None
         tolerance = self.goal.tolerance or self.tolerance
         reading = np.asarray(self.goal.reading, dtype=float)
         self.controller = SwitchingController(self.dt, max_wheel_speed=self.max_wheel_speed, tolerance=tolerance)
         try:
             self.controller.set_goal(reading, *self._route(reading), sensor2_noise=self.model.sensor2_noise_)
         except ValueError as exc:
-            self._set_phase(ControllerStatus.PHASE_FAILED, f'cannot map the goal: {exc}')
+            self.goal_stamp = self.goal.header.stamp
             self.goal = None
-            return
+            self._set_phase(ControllerStatus.PHASE_FAILED, f'cannot map the goal: {exc}')
+            return self.detail
         self.goal_stamp = self.goal.header.stamp
         self.goal = None
         self.reach_steps = 0
         self._set_phase(ControllerStatus.PHASE_REACHING_SENSOR1, f'goal {list(reading)} (tolerance {tolerance} m)')
         if self.pending is not None:
             self._answer(self.pending)
+        return None
 
     def _route(self, reading):
         waypoint, coordinates, fallbacks = self.model.virtual_.goal_route(reading)
@@ -206,7 +222,7 @@ class SwitchingControllerNode(Node):
         command = None
         error, target = math.nan, ()
         if self.phase == ControllerStatus.PHASE_EXPLORING:
-            if self.explored >= self.exploration_steps:
+            if self.explored >= self.exploration_budget:
                 self._set_phase(ControllerStatus.PHASE_LEARNING, f'{self.explored} exploration steps done')
             else:
                 readings = np.array(list(msg.sensor1) + list(msg.sensor2), dtype=float)
