@@ -1,6 +1,6 @@
-"""config/<executable>.yaml of every mm_manifold and mm_planner node lists exactly the node's declared parameters (not those rclpy
-declares on every node), each with its built-in default and type, under the node's default name; and the node starts
-with it as the launch files pass it (--params-file). So the files cannot silently drift from the code."""
+"""config/<executable>.yaml of every mm_manifold and mm_planner node lists exactly the node's declared parameters
+(not those rclpy declares on every node), each with its built-in default and type, under the node's default name;
+and the node starts with it as the launch files pass it (--params-file). So the files cannot drift from the code."""
 from pathlib import Path
 
 import pytest

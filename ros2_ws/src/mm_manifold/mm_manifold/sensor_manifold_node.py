@@ -13,7 +13,7 @@ sent again so a controller that joined late can start the loop.
 After `learn_after` samples the SensorManifoldModel (dimension, elastic grid, Jacobians, virtual sensor space) is
 fitted in a background thread, and refitted every `refit_every` further samples - and after `learn_after // 4`
 more when sensor 2 was not seen during the excursions (such a model cannot map a sensor-2 goal, so the controller
-explores on; this happens in a few noisy explorations). The model is saved atomically to
+explores on; it happened in a noisy graph run). The model is saved atomically to
 `model_path` (np.savez + JSON) and announced on the latched `wheeled/manifold/model` topic; a saved model is loaded
 at start, so a restart does not relearn. Every sample gives one `wheeled/manifold/state` (and a Jacobian estimate).
 """

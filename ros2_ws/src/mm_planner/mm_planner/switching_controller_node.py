@@ -6,10 +6,11 @@ One wheel command per `wheeled/manifold/state` (the lockstep loop: simulator -> 
 simulator). Phases, published on `wheeled/controller/status`: EXPLORING (RandomExplorer: random motion with a
 reflex on the readings and the bumper) -> LEARNING (no commands: the loop pauses while the manifold node fits;
 a model that has not seen sensor 2 during its excursions cannot map any goal, so `exploration_steps // 4` more
-exploration steps follow, until the manifold node's refit has) -> WAITING_FOR_GOAL -> REACHING_SENSOR1 / REACHING_VIRTUAL_SENSOR1 / REACHING_SENSOR2 (SwitchingController) ->
-GOAL_REACHED or FAILED (then waiting again). Goals come as mm_msgs/SensorGoal on `wheeled/goal` (latched) or
-through the `wheeled/set_goal` service. The learned model is read from the file the manifold node announces on
-`wheeled/manifold/model`. Nothing here sees world coordinates.
+exploration steps follow, until the manifold node's refit has) -> WAITING_FOR_GOAL -> REACHING_SENSOR1 /
+REACHING_VIRTUAL_SENSOR1 / REACHING_SENSOR2 (SwitchingController) -> GOAL_REACHED or FAILED (then waiting again).
+Goals come as mm_msgs/SensorGoal on `wheeled/goal` (latched) or through the `wheeled/set_goal` service. The learned
+model is read from the file the manifold node announces on `wheeled/manifold/model`. Nothing here sees world
+coordinates.
 """
 from __future__ import annotations
 
@@ -137,9 +138,9 @@ class SwitchingControllerNode(Node):
                 if self.pending is not None:
                     self._answer(self.pending)
         elif self.phase in (ControllerStatus.PHASE_LEARNING, ControllerStatus.PHASE_EXPLORING):
-            if self.phase == ControllerStatus.PHASE_EXPLORING and self.explored < self.exploration_budget:
-                self.detail = 'a learned model exists: exploration skipped'
-            self._set_phase(ControllerStatus.PHASE_WAITING_FOR_GOAL, 'model ready')
+            skipped = self.phase == ControllerStatus.PHASE_EXPLORING and self.explored < self.exploration_budget
+            self._set_phase(ControllerStatus.PHASE_WAITING_FOR_GOAL,
+                            'a learned model exists: exploration skipped' if skipped else 'model ready')
             self._start_goal()
         self._status()
 
