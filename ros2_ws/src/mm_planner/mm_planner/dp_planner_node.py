@@ -189,8 +189,13 @@ class DpPlannerNode(Node):
         if not np.allclose([*msg.joint0_limits, *msg.joint1_limits], self.grid.limits.ravel()):
             self.get_logger().error('collision map joint limits differ from ours; ignored', throttle_duration_sec=5.0)
             return
-        closeness = (np.array(msg.closeness, float).reshape(self.grid.shape)
-                     if len(msg.closeness) == len(msg.collision) else None)
+        closeness = None                  # none sent: the paper's rewards only
+        if len(msg.closeness) == len(msg.collision):
+            closeness = np.array(msg.closeness, float).reshape(self.grid.shape)
+        elif len(msg.closeness):
+            self.get_logger().warn(f'collision map closeness has {len(msg.closeness)} values for '
+                                   f'{len(msg.collision)} cells; planning without clearance',
+                                   throttle_duration_sec=5.0)
         try:
             changed = self.planner.update_collision(np.array(msg.collision, bool).reshape(self.grid.shape), closeness)
         except ValueError as exc:

@@ -27,12 +27,12 @@ class SwitchingController:
     its candidate set, travel_weight (cost of wheel travel relative to the squared goal error), manoeuvre_travel_weight
     (the same for the sensor-2 manoeuvres, relative to the squared error in tolerance units: 1e-2 makes a 28-step
     drive cost about one tolerance of error; on offline tasks disjoint from the benchmark's it shortened the median
-    path by 1-6 % over 1e-3 at equal or better success), tolerance [m] on each
-    sensor-2 reading, settle_steps / max_settle_steps (fewest / most steps standing still to decide whether the
-    reading is within tolerance: noisy readings need more of them), damping of the least-squares
-    step, waypoint_tolerance [grid units], turn_speed / drive_speed [rad/s] of the sensor-2 manoeuvres, stall_steps
-    (steps without progress toward the target before aiming at the next fallback), max_retries (times the route is
-    restarted from the practised exit when every target was reached blind)."""
+    path by 1-6 % over 1e-3 at equal or better success), tolerance [m] on each sensor-2 reading, settle_steps /
+    max_settle_steps (fewest / most steps standing still to decide whether the reading is within tolerance: noisy
+    readings need more of them), damping of the least-squares step, waypoint_tolerance [grid units], turn_speed /
+    drive_speed [rad/s] of the sensor-2 manoeuvres, stall_steps (steps without progress toward the target before
+    aiming at the next fallback), max_retries (times the route is restarted from the practised exit when every
+    target was reached blind)."""
 
     def __init__(self, dt: float, max_wheel_speed: float = 6.0, horizon: int = 12,
                  speed_levels=(1.0, 0.4, 0.12, 0.0), travel_weight: float = 1e-3, tolerance: float = 0.01,
