@@ -27,7 +27,7 @@ from mm_manifold.virtual_space import Excursion, ExtrapolatedField, VirtualSenso
 SENSOR1 = (0, 1, 2)
 SENSOR2 = (3, 4)
 SPACE_NONE, SPACE_SENSOR1, SPACE_VIRTUAL, SPACE_SENSOR2 = 0, 1, 2, 3
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 
 
 def group_in_range(readings: np.ndarray, group) -> np.ndarray:
@@ -57,16 +57,19 @@ def find_excursions(R: np.ndarray, U: np.ndarray, continuous: np.ndarray) -> Lis
 
 
 class SensorManifoldModel:
-    """Hyperparameters: dt, grid shape, polynomial degree of the Jacobian fields, virtual-space prior weight.
+    """Hyperparameters: dt, grid shape, polynomial degree of the Jacobian fields, virtual-space prior weight,
+    route_travel_weight (VirtualSensorSpace.goal_route).
     Learned: dimension_, grid_, field1_ (grid coords), regions1_, field2_ (sensor-2 readings), sensor2_noise_ (std
     of the sensor-2 reading noise, estimated from consecutive samples), virtual_, n_samples_, n_excursions_."""
 
     def __init__(self, dt: float, grid_rows: int = 10, grid_cols: int = 10, jacobian_degree: int = 2,
-                 virtual_prior_weight: float = 1.0, random_state: Optional[int] = 0):
+                 virtual_prior_weight: float = 1.0, route_travel_weight: float = 5e-3,
+                 random_state: Optional[int] = 0):
         self.dt = dt
         self.grid_rows, self.grid_cols = grid_rows, grid_cols
         self.jacobian_degree = jacobian_degree
         self.virtual_prior_weight = virtual_prior_weight
+        self.route_travel_weight = route_travel_weight
         self.random_state = random_state
 
     def fit(self, R: np.ndarray, U: np.ndarray, continuous: np.ndarray,
@@ -118,7 +121,8 @@ class SensorManifoldModel:
             excursions.append(e)
         self.excursions_ = excursions
         self.virtual_ = VirtualSensorSpace(self.dt, self.grid_box(), self.virtual_bounds(),
-                                           prior_weight=self.virtual_prior_weight).fit(self.field1_, excursions)
+                                           prior_weight=self.virtual_prior_weight,
+                                           route_travel_weight=self.route_travel_weight).fit(self.field1_, excursions)
         self.n_samples_ = int(len(R))
         self.n_excursions_ = int(self.virtual_.n_excursions_)
         return self
@@ -161,7 +165,7 @@ class SensorManifoldModel:
             'field1_scale': self.field1_.scale_,
             'virtual_correction': self.virtual_.field_.correction,
             'overlap_coordinates': self.virtual_.overlap_coordinates_, 'overlap_sensor2': self.virtual_.overlap_sensor2_,
-            'overlap_exits': self.virtual_.overlap_exits_,
+            'overlap_exits': self.virtual_.overlap_exits_, 'overlap_travel': self.virtual_.overlap_travel_,
             'regions1_anchors': self.regions1_.anchors_, 'regions1_jacobians': self.regions1_.jacobians_,
             'regions1_errors': self.regions1_.standard_errors_, 'regions1_support': self.regions1_.support_,
         }
@@ -170,7 +174,8 @@ class SensorManifoldModel:
                           field2_scale=self.field2_.scale_)
         meta = {'format_version': FORMAT_VERSION, 'dt': self.dt, 'grid_rows': self.grid_rows,
                 'grid_cols': self.grid_cols, 'jacobian_degree': self.jacobian_degree,
-                'virtual_prior_weight': self.virtual_prior_weight, 'dimension': int(self.dimension_),
+                'virtual_prior_weight': self.virtual_prior_weight,
+                'route_travel_weight': self.route_travel_weight, 'dimension': int(self.dimension_),
                 'sensor2_noise': [float(v) for v in self.sensor2_noise_],
                 'grid_residual': self.grid_.residual_, 'n_samples': self.n_samples_,
                 'n_excursions': self.n_excursions_,
@@ -194,7 +199,7 @@ class SensorManifoldModel:
             raise ValueError(f"model {path}: format {meta.get('format_version')} != {FORMAT_VERSION}")
         try:
             model = cls(meta['dt'], meta['grid_rows'], meta['grid_cols'], meta['jacobian_degree'],
-                        meta['virtual_prior_weight'])
+                        meta['virtual_prior_weight'], meta['route_travel_weight'])
             model.dimension_ = meta['dimension']
             model.sensor2_noise_ = np.asarray(meta['sensor2_noise'], dtype=float)
             model.n_samples_, model.n_excursions_ = meta['n_samples'], meta['n_excursions']
@@ -216,7 +221,8 @@ class SensorManifoldModel:
             model.regions1_.standard_errors_ = arrays['regions1_errors']
             model.regions1_.support_ = arrays['regions1_support']
             virtual = VirtualSensorSpace(meta['dt'], model.grid_box(), model.virtual_bounds(),
-                                         meta['virtual_prior_weight'])
+                                         meta['virtual_prior_weight'],
+                                         route_travel_weight=meta['route_travel_weight'])
             if arrays['virtual_correction'].shape != model.field1_.theta_.shape:
                 raise ValueError('virtual-space correction does not match the Jacobian field')
             virtual.field_ = ExtrapolatedField(model.field1_, correction=arrays['virtual_correction'])
@@ -226,7 +232,10 @@ class SensorManifoldModel:
             virtual.overlap_coordinates_ = arrays['overlap_coordinates']
             virtual.overlap_sensor2_ = arrays['overlap_sensor2']
             virtual.overlap_exits_ = arrays['overlap_exits']
-            virtual._fit_overlap_tree()
+            virtual.overlap_travel_ = arrays['overlap_travel']
+            if not (len(virtual.overlap_coordinates_) == len(virtual.overlap_sensor2_) == len(virtual.overlap_exits_)
+                    == len(virtual.overlap_travel_)):
+                raise ValueError('sensor-2 overlap arrays differ in length')
             model.virtual_ = virtual
         except KeyError as exc:
             raise ValueError(f'model {path} lacks {exc}') from exc

@@ -10,6 +10,7 @@ import pytest
 from mm_bringup.wall_experiment import explore
 from mm_manifold.dimension import LocalPCADimension
 from mm_manifold.grid import ElasticGrid
+from mm_manifold.jacobian import PolynomialJacobianField
 from mm_manifold.sensor_manifold import (SENSOR1, SENSOR2, SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL,
                                          SensorManifoldModel, StateTracker, find_excursions, group_in_range)
 from mm_manifold.virtual_space import Excursion, VirtualSensorSpace
@@ -287,6 +288,36 @@ def test_virtual_space_overlaps_sensor2(model, robot):
         VirtualSensorSpace(DT, box).fit(model.field1_, []).goal_route(goal)
 
 
+def test_goal_route_trades_reading_mismatch_for_blind_travel():
+    """Two practised excursions reach readings near the goal: one drives 2 rad of wheel rotation blind and comes
+    3 mm closer, the other only turns. With a travel weight the route follows the one that turns (its exit and its own
+    virtual coordinates); without, the closer reading wins."""
+    box = np.array([[0.0, 0.0], [9.0, 9.0]])
+    turn = [np.array([-1.0, 1.0])] * 10                 # wheel arc that turns the robot, does not move it
+    drive = [np.array([4.0, 4.0])] * 10                 # 10 steps * 4 rad/s * 0.05 s = 2 rad of blind drive
+    goal = np.array([0.150, 0.150])
+    excursions = [Excursion(start=np.array([1.0, 1.0]), commands=drive, sensor2=[(10, goal + 0.001)]),
+                  Excursion(start=np.array([5.0, 5.0]), commands=turn, sensor2=[(9, goal + 0.003), (10, goal - 0.003)])]
+
+    rng = np.random.default_rng(0)
+    still = PolynomialJacobianField(2).fit(rng.uniform(0, 9, (50, 2)), rng.normal(size=(50, 2)), np.zeros((50, 2)))
+
+    def space(weight):
+        return VirtualSensorSpace(DT, box, route_travel_weight=weight).fit(still, excursions)
+
+    near = space(0.0)
+    np.testing.assert_allclose(near.overlap_travel_, [2.0, 0.0, 0.0])
+    exit_point, coords, _ = near.goal_route(goal)
+    np.testing.assert_array_equal(exit_point, [1.0, 1.0])
+    exit_point, coords, _ = space(2e-3).goal_route(goal)
+    np.testing.assert_array_equal(exit_point, [5.0, 5.0])
+    np.testing.assert_allclose(coords, [5.0, 5.0])      # the zero field keeps the virtual coordinates at the exit
+    routes = space(2e-3).ranked_routes(goal, 5)         # one route per excursion, best first: the retry order
+    assert [list(exit_point) for exit_point, _ in routes] == [[5.0, 5.0], [1.0, 1.0]]
+    with pytest.raises(ValueError, match='route_travel_weight'):
+        VirtualSensorSpace(DT, box, route_travel_weight=-1.0)
+
+
 # --- excursion bookkeeping ---------------------------------------------------------------------------------------
 def test_find_excursions_closed_open_and_broken():
     R = np.array([IN1, IN1, OUT, OUT, IN1,            # 1 -> out -> back at 4: closed
@@ -405,6 +436,10 @@ def test_load_rejects_missing_corrupt_and_foreign_files(model, tmp_path):
     np.savez(partial, **{k: a for k, a in arrays.items() if k != 'field1_theta'})
     with pytest.raises(ValueError, match='field1_theta'):
         SensorManifoldModel.load(partial)
+    uneven = tmp_path / 'uneven_overlap.npz'
+    np.savez(uneven, **{**arrays, 'overlap_travel': arrays['overlap_travel'][1:]})
+    with pytest.raises(ValueError, match='differ in length'):
+        SensorManifoldModel.load(uneven)
     bad_nodes = tmp_path / 'nan_nodes.npz'
     nodes = arrays['grid_nodes'].copy()
     nodes[0, 0, 0] = np.nan

@@ -87,12 +87,13 @@ class SwitchingController:
 
     def set_goal(self, sensor2_goal: np.ndarray, goal_coordinates: np.ndarray,
                  waypoint: Optional[np.ndarray] = None, fallbacks: Optional[np.ndarray] = None,
-                 sensor2_noise: Optional[np.ndarray] = None) -> None:
+                 sensor2_noise: Optional[np.ndarray] = None, alternatives=()) -> None:
         """`waypoint`: where in sensor-1 range the practised excursions toward this goal left the range; the robot
         first goes there with sensor-1 control, then aims at the goal's virtual coordinates. `fallbacks`: virtual
         coordinates to aim at next if the goal's are reached while sensor 2 still does not see the wall (the virtual
-        estimate has drifted). `sensor2_noise`: learned std of the sensor-2 reading noise; the stop decision never
-        trusts a few readings to be less noisy than that."""
+        estimate has drifted). `alternatives`: further (waypoint, goal coordinates) routes, taken in turn on each
+        retry (the same route again when there are none). `sensor2_noise`: learned std of the sensor-2 reading
+        noise; the stop decision never trusts a few readings to be less noisy than that."""
         sensor2_goal = np.asarray(sensor2_goal, dtype=float)
         goal_coordinates = np.asarray(goal_coordinates, dtype=float)
         if sensor2_goal.ndim != 1 or not len(sensor2_goal) or goal_coordinates.ndim != 1:
@@ -106,7 +107,9 @@ class SwitchingController:
         self.goal_coordinates = goal_coordinates
         self.waypoint = None if waypoint is None else np.asarray(waypoint, dtype=float)
         self.fallbacks = [] if fallbacks is None else [np.asarray(f, dtype=float) for f in fallbacks]
-        self._route = (self.waypoint, self.goal_coordinates, list(self.fallbacks))
+        self._fallbacks = list(self.fallbacks)
+        self._routes = [(self.waypoint, self.goal_coordinates)] + [
+            (np.asarray(w, dtype=float), np.asarray(g, dtype=float)) for w, g in alternatives]
         self._seen_in_range = []           # grid coordinates measured in this episode with sensor 1 in range
         self.retries = 0
         self.best_error, self.stalled_steps = np.inf, 0
@@ -268,12 +271,12 @@ class SwitchingController:
             # Arrived (as far as the estimate knows) or stuck, and sensor 2 sees nothing: aim deeper.
             self._next_target()
         elif (self.waypoint is None and not self.fallbacks and self.stalled_steps > self.stall_steps
-              and self.retries < self.max_retries and self._route[0] is not None):
+              and self.retries < self.max_retries and self._routes[0][0] is not None):
             # Every target reached blind and still no sensor 2: the virtual estimate has drifted too far. Go back
-            # to the practised exit (sensor 1 re-localises on re-entry) and run the route again.
+            # to a practised exit (sensor 1 re-localises on re-entry): the next alternative route, else this one.
             self.retries += 1
-            self.waypoint, self.goal_coordinates, fallbacks = self._route
-            self.fallbacks = list(fallbacks)
+            self.waypoint, self.goal_coordinates = self._routes[self.retries % len(self._routes)]
+            self.fallbacks = list(self._fallbacks)
             self.best_error, self.stalled_steps = np.inf, 0
             if self.fallbacks and self._refuted(self.goal_coordinates):
                 self._next_target()

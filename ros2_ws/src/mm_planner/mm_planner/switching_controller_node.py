@@ -176,7 +176,10 @@ class SwitchingControllerNode(Node):
         reading = np.asarray(self.goal.reading, dtype=float)
         self.controller = SwitchingController(self.dt, max_wheel_speed=self.max_wheel_speed, tolerance=tolerance)
         try:
-            self.controller.set_goal(reading, *self._route(reading), sensor2_noise=self.model.sensor2_noise_)
+            waypoint, coordinates, fallbacks = self.model.virtual_.goal_route(reading)
+            alternatives = self.model.virtual_.ranked_routes(reading, 1 + self.controller.max_retries)[1:]
+            self.controller.set_goal(reading, coordinates, waypoint, fallbacks,
+                                     sensor2_noise=self.model.sensor2_noise_, alternatives=alternatives)
         except ValueError as exc:
             self.goal_stamp = self.goal.header.stamp
             self.goal = None
@@ -189,10 +192,6 @@ class SwitchingControllerNode(Node):
         if self.pending is not None:
             self._answer(self.pending)
         return None
-
-    def _route(self, reading):
-        waypoint, coordinates, fallbacks = self.model.virtual_.goal_route(reading)
-        return coordinates, waypoint, fallbacks
 
     def _on_bumper(self, msg: Bool) -> None:
         self.bumped = bool(msg.data)

@@ -203,6 +203,23 @@ def test_a_target_seen_with_sensor1_in_range_is_skipped():
     assert np.array_equal(c.target, seen)
 
 
+def test_retries_take_the_alternative_routes_in_turn():
+    """Every target reached blind and still no sensor 2: the robot goes back to sensor-1 range, to the next
+    practised route's exit (then the first route's again once the alternatives are used up), max_retries times."""
+    field, _ = linear_field()
+    first, second = (np.array([4.0, 4.0]), np.array([11.0, -3.0])), (np.array([6.0, 2.0]), np.array([12.0, -2.0]))
+    c = SwitchingController(DT, stall_steps=2, max_retries=3)
+    c.set_goal(np.array([0.17, 0.17]), first[1], first[0], alternatives=[second])
+    targets = []
+    for _ in range(200):           # the robot does not move: every target is "reached" or stalls
+        c.command(SPACE_VIRTUAL, first[1], None, field, None)
+        if not targets or not np.array_equal(targets[-1], c.target):
+            targets.append(c.target.copy())
+    expected = [first[0], first[1], second[0], second[1], first[0], first[1], second[0], second[1]]
+    assert len(targets) == len(expected) and all(np.array_equal(a, b) for a, b in zip(targets, expected)), targets
+    assert c.retries == 3
+
+
 # --- closed-loop episodes with a learned model -------------------------------------------------------------------
 @pytest.fixture(scope='module')
 def robot():

@@ -113,7 +113,7 @@ def test_a_model_that_has_not_seen_sensor2_sends_it_exploring_again(model_file, 
     path, _ = model_file
     blind = SensorManifoldModel.load(path)
     blind.virtual_.overlap_coordinates_ = blind.virtual_.overlap_exits_ = np.zeros((0, 2))
-    blind.virtual_.overlap_sensor2_ = np.zeros((0, 2))
+    blind.virtual_.overlap_sensor2_, blind.virtual_.overlap_travel_ = np.zeros((0, 2)), np.zeros(0)
     assert not blind.ready
     blind_path = tmp_path / 'blind_model.npz'
     blind.save(blind_path)
@@ -201,7 +201,9 @@ def test_a_goal_the_model_cannot_map_fails_under_its_own_stamp(model_file):
     try:
         rig.model_pub.publish(String(data=str(path)))
         assert rig.ros.spin_until(lambda: rig.phase() == 'WAITING_FOR_GOAL')
-        rig.node.model.virtual_._tree = None            # as learned from an exploration without sensor 2
+        virtual = rig.node.model.virtual_                # as learned from an exploration without sensor 2
+        virtual.overlap_coordinates_ = virtual.overlap_exits_ = virtual.overlap_sensor2_ = np.zeros((0, 2))
+        virtual.overlap_travel_ = np.zeros(0)
         goal = sensor2_goal_reading(WheeledRobot(), (0.0, 0.2, 0.0))
         for sec in (7, 8):
             response = rig.call(goal, stamp_sec=sec)
