@@ -257,7 +257,8 @@ class StateTracker:
     grid coordinates of the reading; out of range -> virtual coordinates integrated from the last in-range ones with
     the commands actually sent; sensor 2 in range takes precedence for control (the paper's switch). When sensor 2
     drops out of range after having been in range, its reading is continued with the learned sensor-2 field for up
-    to `sensor2_hold_steps` (a short virtual sensor 2), so a manoeuvre near its range edge does not flip the space.
+    to `sensor2_hold_steps` (a short virtual sensor 2), so a manoeuvre near its range edge does not flip the space;
+    a continued reading far outside the explored ones (the field extrapolating) ends the hold early.
 
     Noisy readings: while a group stays in range, its state is a blend of the learned-Jacobian prediction from the
     previous state and the command, and the new measurement (`measurement_gain` of the latter; 1 = raw readings).
@@ -292,6 +293,14 @@ class StateTracker:
         self.last_valid = np.where(lost, self.last_valid, readings)
         return np.where(lost & (self.age > self.hold_steps), np.inf, self.last_valid)
 
+    def _plausible_sensor2(self, reading: np.ndarray) -> bool:
+        """A continued sensor-2 reading within the readings seen in exploration, widened by their span on each
+        side. Farther out the polynomial field is extrapolating and can run away (to overflow) within the hold."""
+        box = self.model.sensor2_box_
+        span = box[1] - box[0]
+        return bool(np.all(np.isfinite(reading)) and np.all(reading >= box[0] - span)
+                    and np.all(reading <= box[1] + span))
+
     def update(self, readings: np.ndarray, last_command: Optional[np.ndarray]):
         """Returns (space, coordinates, sensor-2 reading (measured or continued) or None, filtered readings)."""
         lost = np.isnan(np.asarray(readings, dtype=float))
@@ -323,6 +332,8 @@ class StateTracker:
               and self.sensor2_virtual_steps < self.sensor2_hold_steps):
             self.sensor2 = self.sensor2 + self.model.field2_.rates(self.sensor2[None], command[None])[0] * self.model.dt
             self.sensor2_virtual_steps += 1
+            if not self._plausible_sensor2(self.sensor2):
+                self.sensor2 = None
         else:
             self.sensor2 = None
         if self.sensor2 is not None:

@@ -1,6 +1,7 @@
 """Section 2 learning against known geometry and the simulator: intrinsic dimension, elastic grid, Jacobians vs finite
 differences of the wheeled model, the virtual sensor space's re-entry correction, excursion bookkeeping, persistence
 and the live state tracker."""
+import copy
 import json
 import math
 
@@ -502,6 +503,21 @@ def test_state_tracker_switches_sensor1_virtual_sensor2(model, robot):
     # Where sensor 2 first sees the wall, the dead-reckoned virtual coordinates agree with the learned overlap.
     expected = model.virtual_.goal_coordinates(s2s[first_s2])
     assert np.linalg.norm(coords[first_s2] - expected) < 1.5        # grid units (measured ~0.7; the grid is 9 wide)
+
+
+def test_state_tracker_ends_a_sensor2_continuation_that_runs_away(model, robot):
+    """Sensor 2 just lost: its reading is continued with the learned field, unless the continuation leaves the
+    explored readings by more than their span (a polynomial field far outside its data runs off, to overflow)."""
+    runaway = copy.copy(model)
+    runaway.field2_ = copy.copy(model.field2_)
+    runaway.field2_.theta_ = model.field2_.theta_ * 1e4
+    seen = robot.read((0.0, 0.15, 0.0), noisy=False)
+    blind = np.full(5, math.inf)
+    for m, continued in ((model, True), (runaway, False)):
+        tracker = StateTracker(m)
+        assert tracker.update(seen, None)[0] == SPACE_SENSOR2
+        space, _, s2, _ = tracker.update(blind, np.array([-3.0, 3.0]))       # turning: the readings change
+        assert (s2 is not None and space == SPACE_SENSOR2) == continued
 
 
 def test_state_tracker_bridges_lost_readings_then_gives_up(model, robot):
