@@ -76,10 +76,7 @@ def run_episode(robot: WheeledRobot, model: SensorManifoldModel, start, goal_rea
                 controller: Optional[SwitchingController] = None, max_steps: int = 1500,
                 dt: float = 0.05) -> Episode:
     controller = controller or SwitchingController(dt)
-    waypoint, goal_coordinates, fallbacks = model.virtual_.goal_route(goal_reading)
-    alternatives = model.virtual_.ranked_routes(goal_reading, 1 + controller.max_retries)[1:]
-    controller.set_goal(goal_reading, goal_coordinates, waypoint, fallbacks, sensor2_noise=model.sensor2_noise_,
-                        alternatives=alternatives)
+    controller.set_goal_from_routes(model.virtual_, goal_reading, model.sensor2_noise_)
     tracker = StateTracker(model)
     pose, last = tuple(start), None
     ep = Episode()

@@ -117,6 +117,15 @@ class SwitchingController:
         self._plan = None
         self._s2_best, self._s2_stalled, self._chosen, self._avoid = np.inf, 0, set(), set()
 
+    def set_goal_from_routes(self, virtual_space, sensor2_goal: np.ndarray,
+                             sensor2_noise: Optional[np.ndarray] = None) -> None:
+        """set_goal with the learned virtual space's route to the goal reading and, for the retries, its next-best
+        routes. Raises ValueError when the space cannot map the reading (no overlap with sensor 2 learned)."""
+        waypoint, coordinates, fallbacks = virtual_space.goal_route(sensor2_goal)
+        alternatives = virtual_space.ranked_routes(sensor2_goal, 1 + self.max_retries)[1:]
+        self.set_goal(sensor2_goal, coordinates, waypoint, fallbacks, sensor2_noise=sensor2_noise,
+                      alternatives=alternatives)
+
     @property
     def target(self) -> Optional[np.ndarray]:
         return self.waypoint if self.waypoint is not None else self.goal_coordinates

@@ -176,10 +176,7 @@ class SwitchingControllerNode(Node):
         reading = np.asarray(self.goal.reading, dtype=float)
         self.controller = SwitchingController(self.dt, max_wheel_speed=self.max_wheel_speed, tolerance=tolerance)
         try:
-            waypoint, coordinates, fallbacks = self.model.virtual_.goal_route(reading)
-            alternatives = self.model.virtual_.ranked_routes(reading, 1 + self.controller.max_retries)[1:]
-            self.controller.set_goal(reading, coordinates, waypoint, fallbacks,
-                                     sensor2_noise=self.model.sensor2_noise_, alternatives=alternatives)
+            self.controller.set_goal_from_routes(self.model.virtual_, reading, self.model.sensor2_noise_)
         except ValueError as exc:
             self.goal_stamp = self.goal.header.stamp
             self.goal = None
