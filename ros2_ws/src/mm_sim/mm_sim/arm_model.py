@@ -72,7 +72,8 @@ class ArmModel:
     object_radius [px], joint_limits ((lo0, hi0), (lo1, hi1)) [rad], n_background shapes, object_position (x, y) or
     None for a random reachable place, contact_margin [px] added to the contact distance, random_state (textures,
     layout and object place).
-    Attributes after construction: object_position_ (x, y), background_ (static image with the object), textures.
+    Attributes after construction: object_position_ (x, y), static_background_ (background shapes only),
+    background_ (static background with the object drawn at object_position_), textures.
     """
 
     def __init__(self, image_size: int = 400, shoulder: Tuple[float, float] = (200.0, 330.0),
@@ -107,9 +108,34 @@ class ArmModel:
         size = int(2 * math.ceil(self.hand_radius) + 3)
         hand = _random_texture(rng, size, size, n_blobs=9, disc=True)
         self._hand = (hand, _disc_alpha(size, self.hand_radius))
+        # The object's texture is made once; the object can be moved later (set_object_position) without
+        # changing the background or any texture, as the paper varies the object's place between frames.
+        d = int(2 * math.ceil(self.object_radius) + 3)
+        self._object = (_random_texture(rng, d, d, n_blobs=10, disc=True), _disc_alpha(d, self.object_radius))
         self.object_position_ = (self._place_object(rng) if object_position is None
                                  else np.asarray(object_position, dtype=float))
-        self.background_ = self._make_background(rng)
+        self.static_background_ = self._make_background(rng)
+        self.set_object_position(self.object_position_)
+
+    # --- the object ---------------------------------------------------------------------------------------------
+    def set_object_position(self, position: Sequence[float]) -> None:
+        """Move the object to image point `position` (x, y) [px]; raises ValueError if it leaves the image."""
+        p = np.asarray(position, dtype=float).reshape(-1)
+        if p.shape != (2,) or not np.all(np.isfinite(p)):
+            raise ValueError('object position must be 2 finite pixel coordinates (x, y)')
+        r = self.object_radius
+        if np.any(p < r) or np.any(p > self.image_size - r):
+            raise ValueError(f'object at {p.tolist()} would leave the {self.image_size} px image')
+        self.object_position_ = p
+        frame = self.static_background_.copy()
+        tex, alpha = self._object
+        c = (alpha.shape[0] - 1) / 2.0
+        self._blit(frame, tex, alpha, p, 0.0, anchor=(c, c))
+        self.background_ = frame
+
+    def random_object_position(self, rng: np.random.Generator) -> np.ndarray:
+        """A random object place where the hand can touch the object from every side (see _place_object)."""
+        return self._place_object(rng)
 
     # --- kinematics -------------------------------------------------------------------------------------------
     def validate_joints(self, joints: Sequence[float]) -> np.ndarray:
@@ -271,12 +297,6 @@ class ArmModel:
                 mask = np.full((h, w), 255, np.uint8)
             roi = bg[y:y + h, x:x + w]
             roi[mask > 0] = tex[mask > 0]
-        # The object: a textured disc with a dark rim.
-        d = int(2 * math.ceil(self.object_radius) + 3)
-        tex = _random_texture(rng, d, d, n_blobs=10, disc=True)
-        alpha = _disc_alpha(d, self.object_radius)
-        c = (d - 1) / 2.0
-        self._blit(bg, tex, alpha, self.object_position_, 0.0, anchor=(c, c))
         return bg
 
 
