@@ -1,25 +1,55 @@
-"""Helpers every mm node shares: the Jazzy main() pattern and parameter declaration with descriptors."""
+"""Helpers every mm node shares: the Jazzy main() pattern, parameter declaration with descriptors, parameter
+checks for on-set callbacks and throttled logging of rejected input."""
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Optional, Sequence
+import signal
+import threading
+import time
+import weakref
+from typing import Any, Callable, Dict, Iterable, Mapping, Optional, Sequence, Tuple
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+
+# How long the executor waits for work before it looks at the stop flag again: bounds the shutdown latency.
+_STOP_POLL_SEC = 0.1
 
 
 def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = None) -> None:
-    """Spin one node until Ctrl-C or external shutdown, then clean up (the Jazzy main() pattern)."""
-    rclpy.init(args=args)
+    """Spin one node until SIGINT/SIGTERM or external shutdown, then clean up; the process exits with status 0.
+
+    rclpy's own signal handlers shut the context down inside the handler, which races with an executor that is
+    building its wait set (`RCLError: failed to initialize wait set: the given context is not valid`, exit 1).
+    Here the handlers only set a flag: the executor notices it within `_STOP_POLL_SEC`, returns, and the node is
+    destroyed before the context is shut down. Further signals during clean-up are ignored (SIGKILL still works).
+    """
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
     node = None
+    executor = None
     try:
+        if stop.is_set():
+            return
         node = node_factory()
-        rclpy.spin(node)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=_STOP_POLL_SEC)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except _rclpy.RCLError:
+        if rclpy.ok() and not stop.is_set():
+            raise       # a real failure, not the shutdown race
     finally:
+        if executor is not None:
+            executor.shutdown(timeout_sec=1.0)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
@@ -49,11 +79,174 @@ def declare(node: Node, name: str, default: Any, description: str, *,
     return node.declare_parameter(name, default, descriptor).value
 
 
+def _elements(value: Any) -> Iterable[Any]:
+    """The elements of an array parameter value (list, tuple or the array.array rclpy hands to on-set callbacks)."""
+    if isinstance(value, (str, bytes)) or not hasattr(value, '__iter__'):
+        return (value,)
+    return value
+
+
 def reject_non_finite(params) -> SetParametersResult:
-    """On-set callback: refuse NaN/inf in any float or float-array parameter update."""
+    """On-set callback: refuse NaN/inf in any float parameter update or in any element of a float-array update.
+
+    rclpy passes double arrays set at runtime as `array.array('d')`, not lists, so every iterable is checked.
+    """
     for p in params:
-        values = p.value if isinstance(p.value, (list, tuple)) else [p.value]
-        for v in values:
+        scalar = isinstance(p.value, float)
+        for i, v in enumerate(_elements(p.value)):
             if isinstance(v, float) and not math.isfinite(v):
-                return SetParametersResult(successful=False, reason=f'{p.name}: value must be finite, got {v}')
+                where = p.name if scalar else f'{p.name}[{i}]'
+                return SetParametersResult(successful=False, reason=f'{where}: value must be finite, got {v}')
     return SetParametersResult(successful=True)
+
+
+class _ProposedValues(dict):
+    """Parameter values after an update: the update's own values, else the node's current ones (looked up lazily)."""
+
+    def __init__(self, node: Node, params):
+        super().__init__((p.name, p.value) for p in params)
+        self._node = node
+
+    def get(self, name: str, default: Any = None) -> Any:
+        if name in self:
+            return self[name]
+        return self._node.get_parameter(name).value if self._node.has_parameter(name) else default
+
+
+def proposed_values(node: Node, params) -> Mapping[str, Any]:
+    """The node's parameter values as they would be after `params` is applied (for cross-parameter checks;
+    read them with `.get(name)`)."""
+    return _ProposedValues(node, params)
+
+
+def check_parameters(node: Node, params, checks: Sequence[Callable[[Mapping[str, Any]], str]]
+                     ) -> SetParametersResult:
+    """Run cross-parameter `checks` on the proposed values; each returns '' if fine or the reason it is not.
+
+    Use in an on-set callback: `return check_parameters(self, params, [ordered('a_min', 'a_max')])`.
+    """
+    result = reject_non_finite(params)
+    if not result.successful:
+        return result
+    values = proposed_values(node, params)
+    for check in checks:
+        reason = check(values)
+        if reason:
+            return SetParametersResult(successful=False, reason=reason)
+    return SetParametersResult(successful=True)
+
+
+def ordered(lower: str, upper: str, strict: bool = False) -> Callable[[Mapping[str, Any]], str]:
+    """A check for `check_parameters`: parameter `lower` <= (or <, if strict) parameter `upper`."""
+    def check(values: Mapping[str, Any]) -> str:
+        lo, hi = values.get(lower), values.get(upper)
+        if lo is None or hi is None:
+            return ''
+        if lo > hi or (strict and lo == hi):
+            return f"{lower}={lo} must be {'<' if strict else '<='} {upper}={hi}"
+        return ''
+    return check
+
+
+def ordered_pair(name: str, strict: bool = True) -> Callable[[Mapping[str, Any]], str]:
+    """A check for `check_parameters`: the two-element array parameter `name` is [low, high] with low < high."""
+    def check(values: Mapping[str, Any]) -> str:
+        pair = values.get(name)
+        if pair is None:
+            return ''
+        pair = list(pair)
+        if len(pair) != 2:
+            return f'{name} needs two values [low, high], got {len(pair)}'
+        if pair[0] > pair[1] or (strict and pair[0] == pair[1]):
+            return f"{name}: low {pair[0]} must be {'<' if strict else '<='} high {pair[1]}"
+        return ''
+    return check
+
+
+def array_length(name: str, length: int) -> Callable[[Mapping[str, Any]], str]:
+    """A check for `check_parameters`: array parameter `name` has exactly `length` elements."""
+    def check(values: Mapping[str, Any]) -> str:
+        value = values.get(name)
+        if value is not None and len(list(value)) != length:
+            return f'{name} needs {length} values, got {len(list(value))}'
+        return ''
+    return check
+
+
+def reject_read_only(names: Iterable[str]) -> Callable[[Sequence], SetParametersResult]:
+    """On-set callback refusing runtime changes of parameters that only take effect at start-up.
+
+    Prefer `declare(..., read_only=True)`; this is for parameters whose descriptor must stay writable (e.g. shared
+    descriptors) and reads as: 'dt can only be set at start-up'.
+    """
+    frozen = frozenset(names)
+
+    def callback(params) -> SetParametersResult:
+        for p in params:
+            if p.name in frozen:
+                return SetParametersResult(successful=False, reason=f'{p.name} can only be set at start-up')
+        return SetParametersResult(successful=True)
+    return callback
+
+
+class InputRejections:
+    """Counts rejected inputs per source and logs 'rejected input on <source>: <problem>' at most once per
+    `period` wall seconds per source (wall time: a stalled sim clock must not silence the log)."""
+
+    def __init__(self, node: Node, period: float = 1.0):
+        self.logger = node.get_logger()
+        self.period = period
+        self.counts: Dict[str, int] = {}
+        self._last_log: Dict[str, float] = {}
+        self._since_log: Dict[str, int] = {}
+
+    def __call__(self, source: str, problem: str) -> int:
+        self.counts[source] = self.counts.get(source, 0) + 1
+        self._since_log[source] = self._since_log.get(source, 0) + 1
+        now = time.monotonic()
+        if now - self._last_log.get(source, -math.inf) >= self.period:
+            suppressed = self._since_log[source] - 1
+            more = f' (+{suppressed} more since the last report)' if suppressed else ''
+            self.logger.warn(f'rejected input on {source}: {problem}{more} [{self.counts[source]} in total]')
+            self._last_log[source] = now
+            self._since_log[source] = 0
+        return self.counts[source]
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+
+_rejections: 'weakref.WeakKeyDictionary[Node, InputRejections]' = weakref.WeakKeyDictionary()
+
+
+def reject_input(node: Node, source: str, problem: str) -> int:
+    """Log (throttled per node and source) that an input was rejected and why; return the count for `source`.
+
+    `source` names the topic or service (`wheeled/wheel_velocity_controller/commands`), `problem` says what was
+    wrong with the message (`expected 2 wheel speeds, got 3`).
+    """
+    rejections = _rejections.get(node)
+    if rejections is None:
+        rejections = _rejections[node] = InputRejections(node)
+    return rejections(source, problem)
+
+
+def rejected_inputs(node: Node) -> Dict[str, int]:
+    """How many inputs `reject_input` has rejected on this node, per source."""
+    rejections = _rejections.get(node)
+    return dict(rejections.counts) if rejections is not None else {}
+
+
+def array_problem(values: Sequence[float], what: str, length: Optional[int] = None,
+                  bounds: Optional[Tuple[float, float]] = None) -> str:
+    """'' if `values` has `length` finite elements within `bounds` (inclusive); else what is wrong with them."""
+    n = len(values)
+    if length is not None and n != length:
+        return f'{what}: expected {length} values, got {n}'
+    for i, v in enumerate(values):
+        if not math.isfinite(v):
+            return f'{what}[{i}] is {v} (must be finite)'
+        if bounds is not None and not bounds[0] <= v <= bounds[1]:
+            return f'{what}[{i}]={v} outside [{bounds[0]}, {bounds[1]}]'
+    return ''
