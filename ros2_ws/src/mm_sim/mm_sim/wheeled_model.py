@@ -78,7 +78,12 @@ class WheeledRobot:
     noise_range_fraction: float = 0.0  # extra Gaussian noise, std as a fraction of each sensor's max range
 
     def __post_init__(self):
-        self._rng = np.random.default_rng(self.random_state)
+        self.reseed(self.random_state)
+
+    def reseed(self, random_state: Optional[int]) -> None:
+        """Restart the noise and dropout generator (same seed, same reading sequence from here on)."""
+        self.random_state = random_state
+        self._rng = np.random.default_rng(random_state)
 
     def body_velocity(self, wheel_speeds: Sequence[float]):
         """(v, omega) of the body from the wheel angular velocities [left, right]."""

@@ -8,22 +8,30 @@ Publishes, per simulation step and in this order, all with the stamp of that ste
   and, every `marker_period` steps, `wheeled/markers`.
 Consumes `wheeled/wheel_velocity_controller/commands` (std_msgs/Float64MultiArray, [left, right] wheel rad/s).
 
-Lockstep (default): the readings of step k are out; one valid command advances exactly one step of `dt`; until the
-first command arrives the current step is re-published every `republish_period` wall seconds so late joiners can
-start the loop. Free-running: a wall timer steps at `real_time_factor` with the latest command.
+Lockstep (default): the readings of step k are out; one valid command advances exactly one step of `dt`. Whenever
+no command has come for `republish_period` wall seconds (before the first command or at any later step) the current
+step is re-published with its own stamp, so late joiners start the loop and a lost message or a restarted peer
+never stalls it for good (consumers take a repeated stamp as no new sample). A warning says when no command
+publisher has matched for `peer_timeout` seconds. Free-running: a wall timer steps at `real_time_factor` with the
+latest command.
+
+Invalid commands and reset requests are rejected with a throttled log line saying what was wrong; parameters that
+only mean something at start-up are read-only.
 """
 from __future__ import annotations
 
 import math
+import time
 from typing import List
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point
-from mm_common.node_utils import declare, reject_non_finite, run_node
+from mm_common.node_utils import array_problem, check_parameters, declare, reject_input, run_node
 from mm_msgs.srv import ResetPose
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy
 from rosgraph_msgs.msg import Clock
@@ -34,6 +42,8 @@ from visualization_msgs.msg import Marker, MarkerArray
 from mm_sim.wheeled_model import ProximitySensor, WheeledRobot, default_sensors
 
 SENSOR_NAMES = ('front_left', 'front_center', 'front_right', 'side_front', 'side_rear')
+COMMAND_TOPIC = 'wheeled/wheel_velocity_controller/commands'
+RESET_SERVICE = 'wheeled/reset'
 
 # Every topic of the lockstep loop is RELIABLE: the controller waits for each step's readings and the recorder must
 # not lose a message; depth 50 absorbs bursts when a subscriber is briefly slow.
@@ -48,13 +58,21 @@ class WheeledSim(Node):
     def __init__(self, **node_kwargs):
         super().__init__('wheeled_sim', **node_kwargs)
         defaults = {s.name: s for s in default_sensors()}
-        self.dt = declare(self, 'dt', 0.05, 'Simulation step [s]', min_value=1e-4, max_value=1.0)
-        self.lockstep = declare(self, 'lockstep', True, 'Advance one step per received command (deterministic)')
-        self.real_time_factor = declare(self, 'real_time_factor', 1.0,
-                                        'Free-running speed relative to wall time', min_value=0.01, max_value=1000.0)
+        self.dt = declare(self, 'dt', 0.05, 'Simulation step [s]', min_value=1e-4, max_value=1.0, read_only=True)
+        self.lockstep = declare(self, 'lockstep', True, 'Advance one step per received command (deterministic)',
+                                read_only=True)
+        self.real_time_factor = declare(self, 'real_time_factor', 1.0, 'Free-running speed relative to wall time',
+                                        min_value=0.01, max_value=1000.0, read_only=True)
         self.republish_period = declare(self, 'republish_period', 0.5,
-                                        'Lockstep: wall seconds between re-publications before the first command',
+                                        'Lockstep: wall seconds without a command after which the current step is '
+                                        're-published (late joiners, lost messages, restarted peers)',
                                         min_value=0.01, max_value=60.0)
+        self.peer_timeout = declare(self, 'peer_timeout', 5.0,
+                                    'Lockstep: warn when no command publisher has matched for this many wall seconds',
+                                    min_value=0.1, max_value=3600.0)
+        self.max_reset_distance = declare(self, 'max_reset_distance', 100.0,
+                                          'Reset poses farther than this from the world origin are rejected [m]',
+                                          min_value=0.0, max_value=1e6)
         self.command_timeout = declare(self, 'command_timeout', 0.5,
                                        'Free-running: sim seconds after which a stale command counts as zero',
                                        min_value=0.0, max_value=60.0)
@@ -64,7 +82,8 @@ class WheeledSim(Node):
         self.marker_period = declare(self, 'marker_period', 10, 'Publish markers every N steps', min_value=1,
                                      max_value=100000)
         initial_pose = declare(self, 'initial_pose', [0.0, 1.0, -math.pi / 2],
-                               'Initial pose [x, y, theta] in the world frame (wall: y = 0)')
+                               'Initial pose [x, y, theta] in the world frame (wall: y = 0); later poses: '
+                               'the wheeled/reset service', read_only=True)
         wheel_radius = declare(self, 'wheel_radius', 0.02, 'Wheel radius [m]', min_value=1e-4, max_value=1.0,
                                read_only=True)
         wheel_separation = declare(self, 'wheel_separation', 0.04, 'Distance between the wheels [m]',
@@ -78,8 +97,8 @@ class WheeledSim(Node):
                                  max_value=1.0)
         dropout = declare(self, 'dropout', 0.0, 'Probability that a reading is lost (published as NaN)',
                           min_value=0.0, max_value=1.0)
-        seed = declare(self, 'random_seed', 0, 'Seed of the noise and dropout generator', min_value=0,
-                       max_value=2**31 - 1)
+        seed = declare(self, 'random_seed', 0, 'Seed of the noise and dropout generator (setting it restarts the '
+                       'generator)', min_value=0, max_value=2**31 - 1)
         sensors: List[ProximitySensor] = []
         for name in SENSOR_NAMES:
             d = defaults[name]
@@ -109,6 +128,10 @@ class WheeledSim(Node):
         self.command_time_ns = None
         self.commands_received = 0
         self.commands_rejected = 0
+        self.resets_rejected = 0
+        self.republished = 0
+        self.command_publishers_matched = 0
+        self.unmatched_since = time.monotonic()
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.clock_pub = self.create_publisher(Clock, '/clock', LOOP_QOS)
@@ -116,9 +139,10 @@ class WheeledSim(Node):
         self.bumper_pub = self.create_publisher(Bool, 'wheeled/bumper', LOOP_QOS)
         self.odom_pub = self.create_publisher(Odometry, 'wheeled/ground_truth/odom', LOOP_QOS)
         self.marker_pub = self.create_publisher(MarkerArray, 'wheeled/markers', LOOP_QOS)
-        self.create_subscription(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands',
-                                 self._on_command, LOOP_QOS)
-        self.create_service(ResetPose, 'wheeled/reset', self._on_reset)
+        self.command_sub = self.create_subscription(
+            Float64MultiArray, COMMAND_TOPIC, self._on_command, LOOP_QOS,
+            event_callbacks=SubscriptionEventCallbacks(matched=self._on_command_matched))
+        self.create_service(ResetPose, RESET_SERVICE, self._on_reset)
 
         # Messages are built once and only their changing fields are written each step (lean hot path).
         self.range_msgs = []
@@ -137,7 +161,9 @@ class WheeledSim(Node):
         self.bool_msg = Bool()
 
         if self.lockstep:
+            # Restarted on every command, so it fires only after republish_period without one, at any step.
             self.republish_timer = self.create_timer(self.republish_period, self._republish)
+            self.create_timer(1.0, self._check_command_peer)
         else:
             self.republish_timer = None
             self.create_timer(self.dt / self.real_time_factor, self._free_run_tick)
@@ -148,59 +174,85 @@ class WheeledSim(Node):
 
     # --- parameters -------------------------------------------------------------------------------------------
     def _on_set_parameters(self, params) -> SetParametersResult:
-        result = reject_non_finite(params)
+        result = check_parameters(self, params, [])
         if not result.successful:
             return result
         for p in params:
-            if p.name in ('dt', 'lockstep', 'real_time_factor'):
-                return SetParametersResult(successful=False, reason=f'{p.name} can only be set at start-up')
             if p.name == 'noise_std':
                 self.robot.noise_std = float(p.value)
             elif p.name == 'noise_range_fraction':
                 self.robot.noise_range_fraction = float(p.value)
             elif p.name == 'dropout':
                 self.robot.dropout = float(p.value)
+            elif p.name == 'random_seed':
+                self.robot.reseed(int(p.value))
             elif p.name == 'max_wheel_speed':
                 self.max_wheel_speed = float(p.value)
             elif p.name == 'command_timeout':
                 self.command_timeout = float(p.value)
+            elif p.name == 'marker_period':
+                self.marker_period = int(p.value)
+            elif p.name == 'peer_timeout':
+                self.peer_timeout = float(p.value)
+            elif p.name == 'max_reset_distance':
+                self.max_reset_distance = float(p.value)
+            elif p.name == 'republish_period':
+                self.republish_period = float(p.value)
+                if self.republish_timer is not None:
+                    self.destroy_timer(self.republish_timer)
+                    self.republish_timer = self.create_timer(self.republish_period, self._republish)
         return SetParametersResult(successful=True)
 
     # --- inputs -----------------------------------------------------------------------------------------------
     def _validate(self, data) -> str:
-        if len(data) != 2:
-            return f'expected 2 wheel speeds [left, right], got {len(data)}'
-        if not all(math.isfinite(v) for v in data):
-            return f'non-finite wheel speed {list(data)}'
-        if max(abs(v) for v in data) > self.max_wheel_speed:
-            return f'wheel speed {list(data)} beyond max_wheel_speed={self.max_wheel_speed}'
-        return ''
+        return array_problem(data, 'wheel speeds [left, right]', length=2,
+                             bounds=(-self.max_wheel_speed, self.max_wheel_speed))
 
     def _on_command(self, msg: Float64MultiArray) -> None:
         problem = self._validate(msg.data)
         if problem:
             self.commands_rejected += 1
-            self.get_logger().warn(f'rejected command ({self.commands_rejected} so far): {problem}',
-                                   throttle_duration_sec=1.0)
+            reject_input(self, COMMAND_TOPIC, problem)
             return
         self.commands_received += 1
         self.command = np.asarray(msg.data, dtype=float)
         self.command_time_ns = self.sim_time_ns
         if self.lockstep:
-            if self.republish_timer is not None:
-                self.republish_timer.cancel()
-                self.destroy_timer(self.republish_timer)
-                self.republish_timer = None
+            self.republish_timer.reset()
             self._advance(self.command)
 
-    def _on_reset(self, request: ResetPose.Request, response: ResetPose.Response) -> ResetPose.Response:
+    def _on_command_matched(self, info) -> None:
+        """Count matched command publishers: a node on the graph whose publisher does not match cannot drive us."""
+        self.command_publishers_matched = info.current_count
+        if info.current_count == 0:
+            self.unmatched_since = time.monotonic()
+        self.get_logger().info(f'{COMMAND_TOPIC}: {info.current_count} matched publisher(s)')
+
+    def _check_command_peer(self) -> None:
+        unmatched_for = time.monotonic() - self.unmatched_since
+        if self.command_publishers_matched == 0 and unmatched_for >= self.peer_timeout:
+            graph = self.count_publishers(COMMAND_TOPIC)
+            detail = (f'{graph} publisher(s) on the graph do not match (QoS?)' if graph
+                      else 'no publisher on the graph')
+            self.get_logger().warn(f'lockstep waits at step {self.step_index}: no command publisher matched for '
+                                   f'{unmatched_for:.0f} s ({detail})', throttle_duration_sec=self.peer_timeout)
+
+    def _reset_problem(self, request: ResetPose.Request) -> str:
         pose = (request.x, request.y, request.theta)
         if not all(math.isfinite(v) for v in pose):
-            response.success, response.message = False, 'pose must be finite'
-            return response
+            return f'pose {list(pose)} must be finite'
         if request.y < self.robot.body_radius:
-            response.success = False
-            response.message = f'y={request.y} puts the body ({self.robot.body_radius} m) into the wall (y=0)'
+            return f'y={request.y} puts the body ({self.robot.body_radius} m) into the wall (y=0)'
+        if math.hypot(request.x, request.y) > self.max_reset_distance:
+            return f'pose ({request.x}, {request.y}) is beyond max_reset_distance={self.max_reset_distance} m'
+        return ''
+
+    def _on_reset(self, request: ResetPose.Request, response: ResetPose.Response) -> ResetPose.Response:
+        problem = self._reset_problem(request)
+        if problem:
+            self.resets_rejected += 1
+            reject_input(self, RESET_SERVICE, problem)
+            response.success, response.message = False, problem
             return response
         self.pose = (request.x, request.y, math.atan2(math.sin(request.theta), math.cos(request.theta)))
         self.velocity = (0.0, 0.0)
@@ -208,6 +260,8 @@ class WheeledSim(Node):
         self.step_index += 1          # a reset is a new step: sim time stays monotonic for every consumer
         self.bumped = self.robot.touching(self.pose)
         self._publish_step(markers=True)
+        if self.republish_timer is not None:
+            self.republish_timer.reset()
         response.success, response.message = True, f'reset to {self.pose} at step {self.step_index}'
         response.stamp = _stamp(self.sim_time_ns)
         return response
@@ -229,6 +283,8 @@ class WheeledSim(Node):
         self._advance(np.zeros(2) if stale else self.command)
 
     def _republish(self) -> None:
+        """No command for republish_period: send the current step again, same stamp (no new sample downstream)."""
+        self.republished += 1
         self._publish_step(markers=True)
 
     def _publish_step(self, markers: bool = False) -> None:

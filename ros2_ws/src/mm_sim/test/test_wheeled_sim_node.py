@@ -105,3 +105,61 @@ def test_invalid_parameter_updates_are_refused(rig):
     assert not sim.set_parameters([Parameter('noise_std', value=math.nan)])[0].successful
     assert sim.set_parameters([Parameter('noise_std', value=0.01)])[0].successful
     assert sim.robot.noise_std == 0.01
+
+
+def test_runtime_array_nan_and_start_up_parameters_are_refused(rig):
+    _, sim, _, _, _ = rig
+    for name, value in (('dt', 0.1), ('lockstep', False), ('initial_pose', [0.0, 2.0, 0.0]),
+                        ('real_time_factor', 2.0)):
+        result = sim.set_parameters([Parameter(name, value=value)])[0]
+        assert not result.successful and 'read-only' in result.reason.lower(), (name, result.reason)
+    assert sim.dt == 0.05
+
+
+def test_parameters_take_effect_at_runtime(rig):
+    ros, sim, cmd, _, seen = rig
+    assert sim.set_parameters([Parameter('marker_period', value=1)])[0].successful
+    n = len(seen['markers'])
+    cmd.publish(Float64MultiArray(data=[1.0, 1.0]))
+    assert ros.spin_until(lambda: len(seen['markers']) > n)
+    # The same seed restarts the same noise sequence.
+    assert sim.set_parameters([Parameter('noise_std', value=0.01), Parameter('random_seed', value=7)])[0].successful
+    first = sim.robot.read(sim.pose)
+    assert sim.set_parameters([Parameter('random_seed', value=7)])[0].successful
+    assert list(sim.robot.read(sim.pose)) == list(first)
+
+
+def test_lockstep_republishes_the_current_step_at_any_step_until_the_next_command(rig):
+    """A lost command mid-run must not stall the loop: the step is re-sent with its own stamp."""
+    ros, sim, cmd, _, seen = rig
+    assert sim.set_parameters([Parameter('republish_period', value=0.1)])[0].successful
+    for _ in range(3):
+        cmd.publish(Float64MultiArray(data=[2.0, 2.0]))
+    assert ros.spin_until(lambda: sim.step_index >= 4)
+    step, republished = sim.step_index, sim.republished
+    assert ros.spin_until(lambda: sim.republished >= republished + 2, timeout=3.0)
+    assert sim.step_index == step           # re-sent, not advanced
+    stamps = {stamp_ns(m) for m in seen['odom'][-2:]}
+    assert stamps == {sim.sim_time_ns}
+    cmd.publish(Float64MultiArray(data=[2.0, 2.0]))
+    assert ros.spin_until(lambda: sim.step_index == step + 1)
+
+
+@pytest.mark.parametrize('request_args', [dict(x=math.nan, y=0.5), dict(x=0.0, y=math.inf), dict(x=1e308, y=0.5),
+                                          dict(x=0.0, y=1e308), dict(x=0.0, y=0.5, theta=-math.inf)])
+def test_reset_rejects_non_finite_and_far_poses_and_keeps_serving(rig, request_args):
+    ros, sim, _, reset, _ = rig
+    bad = reset.call_async(ResetPose.Request(**request_args))
+    assert ros.spin_until(lambda: bad.done())
+    assert not bad.result().success and bad.result().message
+    assert sim.resets_rejected == 1
+    good = reset.call_async(ResetPose.Request(x=0.0, y=0.5, theta=0.0))
+    assert ros.spin_until(lambda: good.done())
+    assert good.result().success
+
+
+def test_matched_command_publishers_are_counted(rig):
+    ros, sim, cmd, _, _ = rig
+    assert ros.spin_until(lambda: sim.command_publishers_matched == 1)
+    ros.nodes[1].destroy_publisher(cmd)
+    assert ros.spin_until(lambda: sim.command_publishers_matched == 0)
