@@ -1,8 +1,11 @@
-"""`./mm bag info|play|record`: the venv stand-in for `ros2 bag` on mm's rosbag2 MCAP bags.
+"""`./mm bag info|play|record|reindex`: the venv stand-in for `ros2 bag` on mm's rosbag2 MCAP bags.
 
-    ./mm bag info results/demo_bag
+    ./mm bag info results/demo_bag        # counts read from the .mcap files, not just metadata.yaml
     ./mm bag play results/demo_bag [--rate 2.0] [--clock] [--topics /a /b]
     ./mm bag record -o results/my_bag [-a | /topic ...] [--exclude REGEX] [--compression zstd]
+    ./mm bag reindex results/my_bag       # complete a crashed recording: indexed .mcap files + metadata.yaml
+
+Errors are one line on stderr and exit status 1.
 """
 from __future__ import annotations
 
@@ -10,9 +13,9 @@ import argparse
 import os
 import sys
 from pathlib import Path
-from typing import List, Optional
+from typing import Dict, List, Optional
 
-from mm_common.rosbag import BagError, read_metadata
+from mm_common.rosbag import BagError, bag_file_paths, read_metadata, reindex, summarize_file
 
 
 def _human_size(n: float) -> str:
@@ -23,14 +26,35 @@ def _human_size(n: float) -> str:
     return f'{n:.1f} GiB'
 
 
-def format_info(directory: os.PathLike) -> str:
-    """A summary in the layout of `ros2 bag info`."""
+def format_info(directory: os.PathLike, prog: str = 'mm bag') -> str:
+    """A summary in the layout of `ros2 bag info`, with the message counts the .mcap files really hold (from each
+    file's MCAP summary, or by reading the file through when it has none, which a note says). BagError for a
+    missing, empty or damaged file."""
     directory = Path(directory)
     info = read_metadata(directory)
     files = info.get('relative_file_paths', [])
-    size = sum((directory / f).stat().st_size for f in files if (directory / f).exists())
-    start = info['starting_time']['nanoseconds_since_epoch']
-    duration = info['duration']['nanoseconds']
+    counts: Dict[str, int] = {}
+    types: Dict[str, str] = {}
+    starts, ends, notes = [], [], []
+    for path in bag_file_paths(directory, info):
+        summary = summarize_file(path)
+        if summary.error:
+            hint = f'; `{prog} reindex {directory}` recovers what is readable' if path.is_file() else ''
+            raise BagError(f'{path}: {summary.error}{hint}')
+        if summary.scanned:
+            notes.append(f'Note: {path.name} has no MCAP summary (not closed cleanly); counted by reading it through')
+        for topic, n in summary.counts.items():
+            counts[topic] = counts.get(topic, 0) + n
+            types.setdefault(topic, summary.types.get(topic, ''))
+        starts += [summary.start_ns] if summary.start_ns is not None else []
+        ends += [summary.end_ns] if summary.end_ns is not None else []
+    size = sum((directory / f).stat().st_size for f in files)
+    start = min(starts) if starts else 0
+    duration = max(ends) - start if ends else 0
+    total = sum(counts.values())
+    if total != info.get('message_count', 0):
+        notes.append(f"Note: metadata.yaml lists {info.get('message_count', 0)} messages, the files hold {total}; "
+                     f'`{prog} reindex {directory}` rewrites it')
     lines = [
         f"Files:             {files[0] if files else ''}",
         *[f'                   {f}' for f in files[1:]],
@@ -40,17 +64,25 @@ def format_info(directory: os.PathLike) -> str:
         f'Duration:          {duration / 1e9:.3f}s',
         f'Start:             {start / 1e9:.9f}',
         f'End:               {(start + duration) / 1e9:.9f}',
-        f"Messages:          {info['message_count']}",
+        f'Messages:          {total}',
     ]
-    topics = info.get('topics_with_message_count', [])
-    for i, t in enumerate(topics):
-        meta = t['topic_metadata']
+    listed = {t['topic_metadata']['name']: t['topic_metadata'] for t in info.get('topics_with_message_count', [])}
+    names = list(listed) + [t for t in counts if t not in listed]
+    for i, name in enumerate(names):
+        meta = listed.get(name, {})
         prefix = 'Topic information: ' if i == 0 else '                   '
-        lines.append(f"{prefix}Topic: {meta['name']} | Type: {meta['type']} | Count: {t['message_count']} | "
-                     f"Serialization Format: {meta['serialization_format']}")
-    if not topics:
+        lines.append(f"{prefix}Topic: {name} | Type: {meta.get('type') or types.get(name, '')} | "
+                     f"Count: {counts.get(name, 0)} | "
+                     f"Serialization Format: {meta.get('serialization_format', 'cdr')}")
+    if not names:
         lines.append('Topic information: ')
-    return '\n'.join(lines)
+    return '\n'.join(lines + notes)
+
+
+def reindex_bag(directory: os.PathLike) -> str:
+    """`bag reindex`: rebuild a crashed recording; the report says what each file held and what was dropped."""
+    _, report = reindex(directory)
+    return '\n'.join(report)
 
 
 def _mm_run(package: str, executable: str, ros_args: List[str]) -> int:
@@ -59,8 +91,8 @@ def _mm_run(package: str, executable: str, ros_args: List[str]) -> int:
     return 0  # not reached
 
 
-def main(argv: Optional[List[str]] = None) -> int:
-    parser = argparse.ArgumentParser(prog='mm bag', description=__doc__,
+def main(argv: Optional[List[str]] = None, prog: str = 'mm bag') -> int:
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest='command', required=True)
     p_info = sub.add_parser('info', help='summarise a bag directory')
@@ -78,6 +110,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     p_rec.add_argument('--compression', choices=['none', 'zstd', 'lz4'], default='none')
     p_rec.add_argument('--max-bag-size', type=int, default=0)
     p_rec.add_argument('--overwrite', action='store_true')
+    p_reindex = sub.add_parser('reindex', help='rebuild the index and metadata.yaml of a crashed recording')
+    p_reindex.add_argument('bag')
     args = parser.parse_args(argv)
 
     def literal(values: List[str]) -> str:
@@ -85,7 +119,10 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     try:
         if args.command == 'info':
-            print(format_info(args.bag))
+            print(format_info(args.bag, prog))
+            return 0
+        if args.command == 'reindex':
+            print(reindex_bag(args.bag))
             return 0
         if args.command == 'play':
             read_metadata(args.bag)  # fail fast with a clear message
@@ -99,7 +136,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             '-p', f'max_bag_size:={args.max_bag_size}',
             '-p', f"overwrite:={'true' if args.overwrite else 'false'}"])
     except BagError as exc:
-        print(f'mm bag: {exc}', file=sys.stderr)
+        print(f'{prog}: {exc}', file=sys.stderr)
         return 1
 
 

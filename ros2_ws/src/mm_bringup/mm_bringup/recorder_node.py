@@ -7,7 +7,10 @@
 Subscribes with raw serialized messages (no deserialize/serialize round trip), one subscription per topic with the
 reliability/durability adapted to the publishers' offered QoS like rosbag2 (reliable only if every publisher is
 reliable, transient-local only if every publisher is), discovers topics that appear later, and hands messages to a
-writer thread so disk I/O never blocks DDS callbacks. SIGINT/SIGTERM finalise the MCAP summary and metadata.yaml.
+writer thread so disk I/O never blocks DDS callbacks. SIGINT, SIGTERM and SIGHUP finalise the MCAP summary and
+metadata.yaml. Crash safety: the writer commits a chunk (written, flushed, fsynced) at the latest `flush_period`
+seconds after its first message, so kill -9 loses at most that much; `./mm bag reindex <bag>` completes such a bag.
+A full disk stops the recording at once with one error line and leaves the bag closed with what was written.
 """
 from __future__ import annotations
 
@@ -15,21 +18,38 @@ import importlib
 import queue
 import re
 import signal
+import sys
 import threading
 import time
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Dict, List
 
 import rclpy
-from mm_common.node_utils import declare
+from mm_common.node_utils import declare, reject_non_finite
 from mm_common.rosbag import BagError, BagWriter, QosSummary, adapt_offered_qos
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 _STOP = object()
+
+
+class RecorderConfigError(ValueError):
+    """A start-up parameter the recorder cannot work with (reported as one line, exit status 1)."""
+
+
+def compile_patterns(name: str, patterns: List[str]) -> List['re.Pattern']:
+    """The non-empty regexes of a list parameter, compiled; RecorderConfigError names the one that is invalid."""
+    compiled = []
+    for pattern in patterns:
+        if not pattern:
+            continue
+        try:
+            compiled.append(re.compile(pattern))
+        except re.error as exc:
+            raise RecorderConfigError(f'{name}: {pattern!r} is not a valid regular expression ({exc})') from exc
+    return compiled
 
 
 def message_class(type_name: str):
@@ -44,18 +64,24 @@ class Recorder(Node):
         output = declare(self, 'output', '', 'Bag directory to create (default: rosbag2_<date>_<time>)',
                          read_only=True)
         overwrite = declare(self, 'overwrite', False, 'Replace an existing bag directory', read_only=True)
-        self.include = [re.compile(p) for p in declare(
+        self.include = compile_patterns('topics', declare(
             self, 'topics', [''], 'Regexes of topics to record (full match); empty string = all topics',
-            read_only=True) if p]
-        self.exclude = [re.compile(p) for p in declare(
+            read_only=True))
+        self.exclude = compile_patterns('exclude', declare(
             self, 'exclude', ['/rosout', '/parameter_events'], 'Regexes of topics never recorded (full match)',
-            read_only=True) if p]
+            read_only=True))
         self.discovery_period = declare(self, 'discovery_period', 0.1, 'Seconds between topic discovery polls',
-                                        min_value=0.01, max_value=60.0)
+                                        min_value=0.01, max_value=60.0, read_only=True)
         compression = declare(self, 'compression', 'none', 'MCAP chunk compression: none, zstd or lz4',
                               read_only=True, additional_constraints='one of none, zstd, lz4')
         max_bag_size = declare(self, 'max_bag_size', 0, 'Split into a new .mcap file past this many bytes (0 = never)',
                                min_value=0, max_value=2**62, read_only=True)
+        chunk_size = declare(self, 'chunk_size', 1024 * 1024,
+                             'MCAP chunk size in bytes: a chunk is committed to disk when it reaches this size',
+                             min_value=0, max_value=2**31, read_only=True)
+        flush_period = declare(self, 'flush_period', 0.5,
+                               'Seconds after which a chunk is committed (written, fsynced) even if not full: '
+                               'the most data a kill -9 can lose', min_value=0.01, max_value=60.0, read_only=True)
         self.drain_period = declare(self, 'drain_period', 0.3,
                                     'Seconds spent taking already-delivered messages after SIGINT/SIGTERM',
                                     min_value=0.0, max_value=10.0)
@@ -64,13 +90,14 @@ class Recorder(Node):
         if not output:
             output = time.strftime('rosbag2_%Y_%m_%d-%H_%M_%S')
         self.writer = BagWriter(Path(output), compression=compression, max_bag_size=max_bag_size,
-                                overwrite=overwrite)
-        self.add_on_set_parameters_callback(lambda params: SetParametersResult(successful=True))
+                                chunk_size=chunk_size, flush_period=flush_period, overwrite=overwrite)
+        self.add_on_set_parameters_callback(reject_non_finite)
         self._queue: 'queue.Queue' = queue.Queue()
+        self._writer_lock = threading.Lock()   # discovery (executor thread) adds topics while the writer thread writes
         self._failed_topics: Dict[str, str] = {}
         self._recorded_subscriptions: Dict[str, object] = {}
         self.received = 0
-        self._write_error: Optional[Exception] = None
+        self.dropped = 0          # arrived after the recording stopped (write failure)
         self._writer_thread = threading.Thread(target=self._write_loop, name='bag_writer', daemon=True)
         self._writer_thread.start()
         self._closed = False
@@ -97,7 +124,8 @@ class Recorder(Node):
                                   int(p.qos_profile.liveliness)) for p in publishers]
             try:
                 msg_type = message_class(type_name)
-                self.writer.add_topic(topic, type_name, offered, str(publishers[0].topic_type_hash))
+                with self._writer_lock:
+                    self.writer.add_topic(topic, type_name, offered, str(publishers[0].topic_type_hash))
             except (ImportError, AttributeError, ValueError, BagError) as exc:
                 self._failed_topics[topic] = str(exc)
                 self.get_logger().error(f'cannot record {topic} ({type_name}): {exc}')
@@ -114,18 +142,32 @@ class Recorder(Node):
     # --- data path ------------------------------------------------------------------------------------------
     def _on_message(self, topic: str, data: bytes, info: dict) -> None:
         self.received += 1
+        if self.writer.failure is not None:
+            self.dropped += 1
+            return
         received = info.get('received_timestamp') or time.time_ns()
         self._queue.put((topic, data, received, info.get('source_timestamp') or received))
 
     def _write_loop(self) -> None:
+        """Write queued messages; when idle, commit a chunk that has waited `flush_period`."""
         while True:
-            item = self._queue.get()
+            try:
+                item = self._queue.get(timeout=self.writer.seconds_until_flush())
+            except queue.Empty:
+                item = None
             if item is _STOP:
                 return
             try:
-                self.writer.write(*item)
-            except Exception as exc:  # keep draining so the callbacks never block; report at close
-                self._write_error = exc
+                with self._writer_lock:
+                    if item is None:
+                        self.writer.flush_if_due()
+                    elif self.writer.failure is None:
+                        self.writer.write(*item)
+                    else:
+                        self.dropped += 1
+            except BagError as exc:
+                # reported at once (the writer has already closed the bag with what was committed)
+                self.get_logger().error(f'{exc}; the bag in {self.writer.directory} stays readable')
 
     def close(self) -> dict:
         """Stop subscriptions, drain the queue, finalise the MCAP file(s) and metadata.yaml."""
@@ -136,9 +178,11 @@ class Recorder(Node):
             self.destroy_subscription(sub)
         self._queue.put(_STOP)
         self._writer_thread.join()
-        meta = self.writer.close()
-        if self._write_error is not None:
-            self.get_logger().error(f'writing failed for some messages: {self._write_error}')
+        with self._writer_lock:
+            meta = self.writer.close()
+        if self.writer.failure is not None:
+            self.get_logger().error(f'recording incomplete: {self.writer.failure}; '
+                                    f'{self.dropped} later messages not recorded')
         self.get_logger().info(f"bag closed: {meta['message_count']} messages on "
                                f"{len(meta['topics_with_message_count'])} topics in {self.writer.directory}")
         return meta
@@ -149,31 +193,38 @@ class Recorder(Node):
 
 
 def main(args=None):
-    """Own SIGINT/SIGTERM handling: stop spinning, take what DDS already delivered, then finalise the bag.
+    """Own SIGINT/SIGTERM/SIGHUP handling: stop spinning, take what DDS already delivered, then finalise the bag.
 
     With rclpy's default handlers the context is shut down inside the signal handler and messages still queued in
-    the subscriptions would be lost; rosbag2 likewise flushes before it exits.
+    the subscriptions would be lost; rosbag2 likewise flushes before it exits. A closed terminal (SIGHUP) is a stop
+    request too. A start-up problem (bad regex, existing directory) is one error line and exit status 1.
     """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, lambda *_: stop.set())
     node = None
+    status = 0
     try:
         node = Recorder()
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        while not stop.is_set():
+        while not stop.is_set() and rclpy.ok():
             executor.spin_once(timeout_sec=0.05)
         drain_until = time.monotonic() + node.drain_period
-        while time.monotonic() < drain_until:
+        while time.monotonic() < drain_until and rclpy.ok():
             executor.spin_once(timeout_sec=0.01)
-    except ExternalShutdownException:
+    except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except (BagError, RecorderConfigError) as exc:
+        rclpy.logging.get_logger('recorder').error(f'cannot record: {exc}')
+        status = 1
     finally:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    if status:
+        sys.exit(status)
 
 
 if __name__ == '__main__':
