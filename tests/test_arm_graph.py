@@ -42,7 +42,7 @@ def test_plans_around_the_object_without_contact(episode):
 def test_no_learning_or_control_node_subscribes_to_ground_truth(episode):
     summary, _, _ = episode
     gt = summary['ground_truth_subscribers']
-    assert {'/arm/ground_truth/object_pose', '/arm/ground_truth/hand_object_distance'} <= set(gt)
+    assert {'/arm/ground_truth/object_pose', '/arm/ground_truth/state'} <= set(gt)
     for topic, names in gt.items():
         assert not {'image_embedding', 'dp_planner', 'arm_sim'} & set(names), (topic, names)
         assert set(names) <= {'recorder', 'arm_demo_driver'}, (topic, names)

@@ -6,12 +6,12 @@ import pytest
 from mm_bringup.arm_demo import run_arm_demo
 from mm_bringup.process_graph import ProcessGraph
 from mm_common.rosbag import iter_messages
+from mm_msgs.msg import Contact
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Image, JointState
-from std_msgs.msg import Bool
 
 from mm_manifold.arm_learning import ArmStateLearner
-from mm_manifold.image_embedding_node import CONTACT_PAIRING_NS, image_to_array
+from mm_manifold.image_embedding_node import image_to_array
 from mm_manifold.keypoints import KeypointExtractor
 from mm_sim.arm_model import ArmModel
 
@@ -39,26 +39,20 @@ def recorded(tmp_path_factory):
 
 
 def frames_from_bag(bag):
-    """stamp -> (image, joints, contact), pairing each touch reading (no header) with the joint state published
-    just before it, as the node does (DDS source timestamps are the bag's publish times)."""
-    images, joints, contacts = {}, [], []
+    """stamp -> (image, joints, contact), joined by the frame stamp every message carries, as the node does."""
+    images, joints, contacts = {}, {}, {}
     for m in iter_messages(bag):
         if m.topic == '/arm/camera/image_raw':
             img = deserialize_message(m.data, Image)
             images[stamp_ns(img)] = image_to_array(img, 400)
         elif m.topic == '/arm/joint_states':
             js = deserialize_message(m.data, JointState)
-            joints.append((m.publish_time_ns, stamp_ns(js), np.array(js.position)))
+            joints[stamp_ns(js)] = np.array(js.position)
         elif m.topic == '/arm/contact':
-            contacts.append((m.publish_time_ns, deserialize_message(m.data, Bool).data))
-    out = {}
-    for t_c, value in contacts:
-        before = [(t_c - t_j, stamp, q) for t_j, stamp, q in joints if 0 <= t_c - t_j <= CONTACT_PAIRING_NS]
-        if before:
-            _, stamp, q = min(before, key=lambda b: b[0])
-            if stamp in images:
-                out[stamp] = (images[stamp], q, value)
-    return out
+            touch = deserialize_message(m.data, Contact)
+            contacts[stamp_ns(touch)] = touch.in_contact
+    return {stamp: (images[stamp], joints[stamp], value) for stamp, value in contacts.items()
+            if stamp in images and stamp in joints}
 
 
 def test_rebuilt_embedding_matches_the_online_fit(recorded):

@@ -15,10 +15,10 @@ from typing import Callable, Dict, Optional
 
 import numpy as np
 from mm_common.testing import RosHarness
-from mm_msgs.msg import ControllerStatus
+from mm_msgs.msg import ArmGroundTruth, Contact, ControllerStatus
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Bool, Float64, Float64MultiArray
+from std_msgs.msg import Float64MultiArray
 
 from mm_bringup.process_graph import ProcessGraph
 
@@ -57,38 +57,47 @@ def choose_demo_goal(seed: int, joints, rng: Optional[np.random.Generator] = Non
     return grid.centre(fallback), False
 
 
+def _stamps(messages) -> set:
+    return {(m.header.stamp.sec, m.header.stamp.nanosec) for m in messages}
+
+
 def run_arm_demo(graph: ProcessGraph, log: Callable[[str], None] = print, timeout_s: float = 170.0,
                  object_seed: int = 3, exploration_steps: int = 500,
                  embedding_params: Optional[Dict] = None) -> Dict:
     """Run the arm experiment in `graph` (module docstring). Summary keys: reached, phase, detail, contact_count
-    (touch-sensor contacts after the goal was sent), steps (simulator steps in total), execution_steps,
-    exploration_steps, exploration_contact_frames, min_hand_object_distance_px (while executing, ground truth),
-    goal, object_in_way, learn_s, total_s, ground_truth_subscribers (topic -> subscribing node names, taken while
+    (frames with a touch-sensor contact after the goal was sent), link_contact_steps (frames after the goal was
+    sent whose motion touched the object with any part, ground truth), steps (simulator steps in total),
+    execution_steps, exploration_steps, exploration_contact_frames, min_hand_object_distance_px (along the motion
+    while executing, ground truth), goal, object_in_way, learn_s, total_s, ground_truth_subscribers (topic -> subscribing node names, taken while
     all nodes run: only evaluation tools such as the recorder may appear). `embedding_params` are extra parameters
     of image_embedding (e.g. model_path)."""
     t_start = time.monotonic()
     deadline = t_start + timeout_s
     ros = RosHarness()
     nodes = []
-    seen = dict(status=[], joints=[], contact=0, exec_contact=0, distances=[])
+    # Frames are counted once by stamp: the lockstep simulator re-sends its last step while it waits for a command.
+    seen = dict(status=[], joints=[], contact=set(), exec_contact=set(), distances=[], link_contact=set())
     state = dict(executing=False)
     try:
         node = ros.node('arm_demo_driver')
         node.create_subscription(ControllerStatus, 'arm/planner/status', seen['status'].append, QOS)
         node.create_subscription(JointState, 'arm/joint_states', seen['joints'].append, QOS)
 
-        def on_contact(msg: Bool) -> None:
-            if msg.data:
-                seen['contact'] += 1
+        def on_contact(msg: Contact) -> None:
+            if msg.in_contact:
+                stamp = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+                seen['contact'].add(stamp)
                 if state['executing']:
-                    seen['exec_contact'] += 1
+                    seen['exec_contact'].add(stamp)
 
-        def on_distance(msg: Float64) -> None:
+        def on_truth(msg: ArmGroundTruth) -> None:
             if state['executing']:
-                seen['distances'].append(msg.data)
+                seen['distances'].append(msg.min_hand_object_distance)
+                if msg.link_contact:
+                    seen['link_contact'].add((msg.header.stamp.sec, msg.header.stamp.nanosec))
 
-        node.create_subscription(Bool, 'arm/contact', on_contact, QOS)
-        node.create_subscription(Float64, 'arm/ground_truth/hand_object_distance', on_distance, QOS)
+        node.create_subscription(Contact, 'arm/contact', on_contact, QOS)
+        node.create_subscription(ArmGroundTruth, 'arm/ground_truth/state', on_truth, QOS)
         goal_pub = node.create_publisher(Float64MultiArray, 'arm/goal', LATCHED)
         sim_args = dict(lockstep=True, object_seed=object_seed, republish_period=0.5)
         common = dict(use_sim_time=True)
@@ -144,9 +153,11 @@ def run_arm_demo(graph: ProcessGraph, log: Callable[[str], None] = print, timeou
         final = seen['status'][-1]
         summary = dict(
             reached=final.phase == P.PHASE_GOAL_REACHED, phase=final.phase_name, detail=final.detail,
-            contact_count=seen['exec_contact'], exploration_contact_frames=seen['contact'] - seen['exec_contact'],
-            steps=len({(m.header.stamp.sec, m.header.stamp.nanosec) for m in seen['joints']}),
-            execution_steps=len(seen['joints']) - n_joints_before, exploration_steps=exploration_steps,
+            contact_count=len(seen['exec_contact']), link_contact_steps=len(seen['link_contact']),
+            exploration_contact_frames=len(seen['contact'] - seen['exec_contact']),
+            steps=len(_stamps(seen['joints'])),
+            execution_steps=len(_stamps(seen['joints'][n_joints_before:]) - _stamps(seen['joints'][:n_joints_before])),
+            exploration_steps=exploration_steps,
             min_hand_object_distance_px=float(min(seen['distances'])) if seen['distances'] else None,
             goal=[float(v) for v in goal], object_in_way=bool(in_way), object_seed=object_seed,
             learn_s=round(learn_s, 2), total_s=round(time.monotonic() - t_start, 2),

@@ -29,13 +29,12 @@ from typing import Dict, Optional
 import cv2
 import numpy as np
 from mm_common.node_utils import declare, reject_non_finite, run_node
-from mm_msgs.msg import CollisionMap, EmbeddingState
+from mm_msgs.msg import CollisionMap, Contact, EmbeddingState
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Image, JointState
-from std_msgs.msg import Bool
 
 from mm_manifold.arm_learning import ArmStateLearner, ModelFileError
 from mm_manifold.keypoints import KeypointExtractor
@@ -46,7 +45,6 @@ LOOP_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, history=
 MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                      history=HistoryPolicy.KEEP_LAST)
 ENCODINGS = {'rgb8': 3, 'bgr8': 3, 'mono8': 1}
-CONTACT_PAIRING_NS = 20_000_000
 
 
 def stamp_ns(header) -> int:
@@ -126,7 +124,6 @@ class ImageEmbeddingNode(Node):
         self.model: Optional[ArmStateLearner] = None
         self.frames: Dict[str, list] = {'kp': [], 'joints': [], 'contact': [], 'stamp': []}
         self.pending: Dict[int, dict] = {}
-        self._contacts: list = []
         self.known_stamps = set()
         self.images_received = 0
         self.images_rejected = 0
@@ -144,7 +141,7 @@ class ImageEmbeddingNode(Node):
         self.create_subscription(Image, 'arm/camera/image_raw', self._on_image,
                                  LOOP_QOS if image_qos == 'reliable' else qos_profile_sensor_data)
         self.create_subscription(JointState, 'arm/joint_states', self._on_joints, LOOP_QOS)
-        self.create_subscription(Bool, 'arm/contact', self._on_contact, LOOP_QOS)
+        self.create_subscription(Contact, 'arm/contact', self._on_contact, LOOP_QOS)
         # Wall-clock timer: picks up a finished fit even while sim time stands still (lockstep loop waiting).
         self.create_timer(0.1, self._install_fitted, clock=Clock(clock_type=ClockType.STEADY_TIME))
         if self.model_path:
@@ -199,7 +196,7 @@ class ImageEmbeddingNode(Node):
                     del self.pending[old]
         return entry
 
-    def _on_joints(self, msg: JointState, info) -> None:
+    def _on_joints(self, msg: JointState) -> None:
         if len(msg.position) != 2 or not np.all(np.isfinite(msg.position)):
             self.get_logger().warn(f'ignoring joint state with {len(msg.position)} positions (need 2 finite)',
                                    throttle_duration_sec=2.0)
@@ -208,38 +205,15 @@ class ImageEmbeddingNode(Node):
         entry = self._entry(stamp)
         if entry is not None:
             entry['joints'] = np.asarray(msg.position, dtype=float)
-            entry['joint_src'] = int(info['source_timestamp'])
-            self._pair_contacts()
             self._complete(stamp)
 
-    def _on_contact(self, msg: Bool, info) -> None:
-        # std_msgs/Bool has no header. The simulator publishes it right after the joint state of the same step
-        # (microseconds apart, while steps are milliseconds apart), so it is paired with the joint state whose
-        # DDS source timestamp is closest before it, within CONTACT_PAIRING_NS. Arrival order across two topics
-        # is not guaranteed, so unpaired readings wait here briefly.
-        self._contacts.append((int(info['source_timestamp']), bool(msg.data)))
-        if len(self._contacts) > 100:
-            self._contacts.pop(0)
-        self._pair_contacts()
-
-    def _pair_contacts(self) -> None:
-        waiting = [(e['joint_src'], s) for s, e in self.pending.items() if 'joint_src' in e and 'contact' not in e]
-        if not waiting or not self._contacts:
-            return
-        waiting.sort()
-        done = []
-        for i, (src, value) in enumerate(self._contacts):
-            before = [(src - js, s) for js, s in waiting if 0 <= src - js <= CONTACT_PAIRING_NS]
-            if not before:
-                continue
-            _, stamp = min(before)
-            waiting = [w for w in waiting if w[1] != stamp]
-            if stamp in self.pending and 'contact' not in self.pending[stamp]:
-                self.pending[stamp]['contact'] = value
-                done.append(i)
-                self._complete(stamp)
-        for i in reversed(done):
-            self._contacts.pop(i)
+    def _on_contact(self, msg: Contact) -> None:
+        # The touch reading of a frame carries the frame's stamp: it joins the joint state and image of that stamp.
+        stamp = stamp_ns(msg.header)
+        entry = self._entry(stamp)
+        if entry is not None:
+            entry['contact'] = bool(msg.in_contact)
+            self._complete(stamp)
 
     def _on_image(self, msg: Image) -> None:
         self._install_fitted()

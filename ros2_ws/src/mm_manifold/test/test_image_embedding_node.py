@@ -2,11 +2,10 @@
 latched, the model is saved and reloaded, a corrupt model file means learning again."""
 import numpy as np
 from mm_common.testing import RosHarness
-from mm_msgs.msg import CollisionMap, EmbeddingState
+from mm_msgs.msg import CollisionMap, Contact, EmbeddingState
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, JointState
-from std_msgs.msg import Bool
 
 from mm_manifold.arm_evaluation import sample_exploration_joints
 from mm_manifold.image_embedding_node import ImageEmbeddingNode
@@ -33,7 +32,7 @@ def make_rig(ros, params):
     client.create_subscription(CollisionMap, 'arm/embedding/collision_map', seen['map'].append, LATCHED)
     pubs = dict(image=client.create_publisher(Image, 'arm/camera/image_raw', QOS),
                 joints=client.create_publisher(JointState, 'arm/joint_states', QOS),
-                contact=client.create_publisher(Bool, 'arm/contact', QOS))
+                contact=client.create_publisher(Contact, 'arm/contact', QOS))
     assert ros.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), timeout=10)
     return node, pubs, seen
 
@@ -69,7 +68,9 @@ def test_learns_online_latches_the_map_saves_and_reloads(tmp_path):
             js = JointState(name=['shoulder_roll', 'shoulder_pitch'], position=[float(v) for v in q])
             js.header.stamp.sec = k
             pubs['joints'].publish(js)
-            pubs['contact'].publish(Bool(data=model.in_contact(q)))
+            touch = Contact(in_contact=model.in_contact(q))
+            touch.header.stamp.sec = k
+            pubs['contact'].publish(touch)
             assert ros.spin_until(lambda: len(seen['state']) == k + 1, timeout=10)
         assert ros.spin_until(lambda: seen['map'], timeout=60), 'no collision map after the fit'
         assert node.n_frames == N_FRAMES

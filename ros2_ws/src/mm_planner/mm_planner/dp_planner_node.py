@@ -29,14 +29,14 @@ from typing import Optional
 
 import numpy as np
 from mm_common.node_utils import declare, reject_non_finite, run_node
-from mm_msgs.msg import CollisionMap, ControllerStatus, EmbeddingState
+from mm_msgs.msg import CollisionMap, Contact, ControllerStatus, EmbeddingState
 from mm_msgs.srv import SetJointGoal
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Bool, Float64MultiArray
+from std_msgs.msg import Float64MultiArray
 
 from mm_planner.arm_exploration import ArmExplorer
 from mm_planner.value_iteration import DPPlanner, JointGrid
@@ -124,7 +124,7 @@ class DpPlannerNode(Node):
         self.cmd_pub = self.create_publisher(Float64MultiArray, 'arm/joint_position_controller/commands', LOOP_QOS)
         self.status_pub = self.create_publisher(ControllerStatus, 'arm/planner/status', LOOP_QOS)
         self.create_subscription(JointState, 'arm/joint_states', self._on_joints, LOOP_QOS)
-        self.create_subscription(Bool, 'arm/contact', self._on_contact, LOOP_QOS)
+        self.create_subscription(Contact, 'arm/contact', self._on_contact, LOOP_QOS)
         self.create_subscription(EmbeddingState, 'arm/embedding/state', self._on_embedding, LOOP_QOS)
         self.create_subscription(CollisionMap, 'arm/embedding/collision_map', self._on_map, LATCHED_QOS)
         self.create_subscription(Float64MultiArray, 'arm/goal', self._on_goal_msg, LATCHED_QOS)
@@ -166,11 +166,13 @@ class DpPlannerNode(Node):
         self.joints_wall = time.monotonic()
         self._try_act()
 
-    def _on_contact(self, msg: Bool) -> None:
-        self.last_contact = bool(msg.data)
+    def _on_contact(self, msg: Contact) -> None:
+        if self.acted_stamp is not None and stamp_ns(msg.header) <= self.acted_stamp:
+            return            # a re-sent reading of a step already acted on
+        self.last_contact = bool(msg.in_contact)
         self.contact_since_command = True
         self._try_act()
-        if msg.data and self.phase == P.PHASE_EXECUTING:
+        if msg.in_contact and self.phase == P.PHASE_EXECUTING:
             self.contacts_while_executing += 1
             self.get_logger().warn(f'contact while executing ({self.contacts_while_executing} so far)',
                                    throttle_duration_sec=1.0)

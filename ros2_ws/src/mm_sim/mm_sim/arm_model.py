@@ -110,11 +110,12 @@ class ArmModel:
         self._hand = (hand, _disc_alpha(size, self.hand_radius))
         # The object's texture is made once; the object can be moved later (set_object_position) without
         # changing the background or any texture, as the paper varies the object's place between frames.
-        d = int(2 * math.ceil(self.object_radius) + 3)
-        self._object = (_random_texture(rng, d, d, n_blobs=10, disc=True), _disc_alpha(d, self.object_radius))
+        # (Drawn from the generator after the background, so a seed gives the same scene as before objects moved.)
         self.object_position_ = (self._place_object(rng) if object_position is None
                                  else np.asarray(object_position, dtype=float))
         self.static_background_ = self._make_background(rng)
+        d = int(2 * math.ceil(self.object_radius) + 3)
+        self._object = (_random_texture(rng, d, d, n_blobs=10, disc=True), _disc_alpha(d, self.object_radius))
         self.set_object_position(self.object_position_)
 
     # --- the object ---------------------------------------------------------------------------------------------
@@ -202,6 +203,32 @@ class ArmModel:
     def in_contact(self, joints: Sequence[float]) -> bool:
         """The hand touches (overlaps) the object."""
         return self.hand_object_distance(joints) < self.contact_distance
+
+    def link_points_many(self, joints: np.ndarray) -> np.ndarray:
+        """(N, 3, 2) image points (shoulder, elbow, hand centre) of N joint vectors (N, 2)."""
+        q = np.asarray(joints, dtype=float)
+        if q.ndim != 2 or q.shape[1] != 2 or not np.all(np.isfinite(q)):
+            raise ValueError('joints must be finite, of shape (N, 2)')
+        a0, a1 = q[:, 0], q[:, 0] + q[:, 1]
+        elbow = self.shoulder + self.link_lengths[0] * np.stack([np.cos(a0), np.sin(a0)], 1)
+        hand = elbow + self.link_lengths[1] * np.stack([np.cos(a1), np.sin(a1)], 1)
+        return np.stack([np.broadcast_to(self.shoulder, elbow.shape), elbow, hand], 1)
+
+    def part_clearances(self, joints, object_position: Optional[Sequence[float]] = None) -> np.ndarray:
+        """Surface gap [px] between the object and each arm part (upper link, forearm, hand) for a joint vector (2,)
+        or many (N, 2): shape (3,) or (N, 3); negative = overlap. Links are capsules of their width around the joint
+        segment (as link_collides_object); the hand gap is measured to contact_distance (as in_contact). With
+        `object_position`, the gaps to an object there instead of at object_position_ (to check a place first)."""
+        obj = self.object_position_ if object_position is None else np.asarray(object_position, dtype=float)
+        q = np.asarray(joints, dtype=float)
+        pts = self.link_points_many(q.reshape(-1, 2) if q.ndim == 1 else q)
+        shoulder, elbow, hand = pts[:, 0], pts[:, 1], pts[:, 2]
+        gaps = np.stack([
+            _points_segments_distance(obj, shoulder, elbow) - self.link_widths[0] / 2,
+            _points_segments_distance(obj, elbow, hand) - self.link_widths[1] / 2,
+            np.linalg.norm(hand - obj, axis=1) - self.hand_radius - self.contact_margin,
+        ], 1) - self.object_radius
+        return gaps[0] if q.ndim == 1 else gaps
 
     def link_collides_object(self, joints: Sequence[float]) -> bool:
         """One of the two links (not the hand) overlaps the object."""
@@ -304,3 +331,10 @@ def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> floa
     ab = b - a
     t = float(np.clip(np.dot(p - a, ab) / max(float(np.dot(ab, ab)), 1e-12), 0.0, 1.0))
     return float(np.linalg.norm(p - (a + t * ab)))
+
+
+def _points_segments_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance from point p (2,) to each segment a[i] -> b[i] (N, 2)."""
+    ab, ap = b - a, p - a
+    t = np.clip(np.einsum('ij,ij->i', ap, ab) / np.maximum(np.einsum('ij,ij->i', ab, ab), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)

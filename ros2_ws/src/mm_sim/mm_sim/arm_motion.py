@@ -8,7 +8,8 @@ contact is checked on sub-steps of at most `contact_resolution` rad.
 """
 from __future__ import annotations
 
-from typing import Sequence, Tuple
+from dataclasses import dataclass
+from typing import List, Sequence, Tuple
 
 import numpy as np
 
@@ -27,9 +28,46 @@ def move_towards(current: Sequence[float], target: Sequence[float], max_step: fl
 
 def swept_contact(model, start: Sequence[float], end: Sequence[float], resolution: float = 0.02) -> bool:
     """True if the hand touches the object anywhere on the straight joint-space segment start -> end."""
+    return sweep(model, start, end, resolution).hand_contact
+
+
+PART_NAMES = ('upper_link', 'forearm', 'hand')
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """What happened between the arm and the object along one straight joint-space motion (ends included)."""
+    part_contact: Tuple[bool, bool, bool]        # per part of PART_NAMES: overlapped the object at some sub-step
+    min_part_clearance: Tuple[float, float, float]   # smallest surface gap of each part [px]; < 0 = overlap
+    min_hand_object_distance: float              # smallest hand-object centre distance [px]
+
+    @property
+    def hand_contact(self) -> bool:
+        return self.part_contact[2]
+
+    @property
+    def any_contact(self) -> bool:
+        return any(self.part_contact)
+
+    @property
+    def min_clearance(self) -> float:
+        return min(self.min_part_clearance)
+
+    @property
+    def contact_parts(self) -> List[str]:
+        return [name for name, hit in zip(PART_NAMES, self.part_contact) if hit]
+
+
+def sweep(model, start: Sequence[float], end: Sequence[float], resolution: float = 0.02) -> Sweep:
+    """Contact and clearance of every arm part along start -> end, on sub-steps of at most `resolution` rad."""
     a, b = np.asarray(start, dtype=float), np.asarray(end, dtype=float)
     n = max(1, int(np.ceil(float(np.max(np.abs(b - a))) / max(resolution, 1e-6))))
-    return any(model.in_contact(a + (b - a) * (k / n)) for k in range(n + 1))
+    qs = a + (b - a) * (np.arange(n + 1) / n)[:, None]
+    gaps = model.part_clearances(qs)
+    hand = np.linalg.norm(model.link_points_many(qs)[:, 2] - model.object_position_, axis=1)
+    return Sweep(part_contact=tuple(bool(v) for v in np.any(gaps < 0.0, axis=0)),
+                 min_part_clearance=tuple(float(v) for v in gaps.min(axis=0)),
+                 min_hand_object_distance=float(hand.min()))
 
 
 class JointMotion:

@@ -8,7 +8,8 @@ from mm_common.testing import RosHarness
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, JointState
-from std_msgs.msg import Bool, Float64, Float64MultiArray
+from mm_msgs.msg import ArmGroundTruth, Contact
+from std_msgs.msg import Float64MultiArray
 
 from mm_sim.arm_model import ArmModel
 from mm_sim.arm_sim_node import ArmSim
@@ -22,12 +23,12 @@ def rig():
     sim = ros.add(ArmSim(context=ros.context, parameter_overrides=[
         Parameter('republish_period', value=0.2), Parameter('object_seed', value=5)]))
     client = ros.node('arm_sim_test_client')
-    seen = {'image': [], 'joints': [], 'contact': [], 'pose': [], 'distance': []}
+    seen = {'image': [], 'joints': [], 'contact': [], 'pose': [], 'truth': []}
     client.create_subscription(Image, 'arm/camera/image_raw', seen['image'].append, QOS)
     client.create_subscription(JointState, 'arm/joint_states', seen['joints'].append, QOS)
-    client.create_subscription(Bool, 'arm/contact', seen['contact'].append, QOS)
+    client.create_subscription(Contact, 'arm/contact', seen['contact'].append, QOS)
     client.create_subscription(PoseStamped, 'arm/ground_truth/object_pose', seen['pose'].append, QOS)
-    client.create_subscription(Float64, 'arm/ground_truth/hand_object_distance', seen['distance'].append, QOS)
+    client.create_subscription(ArmGroundTruth, 'arm/ground_truth/state', seen['truth'].append, QOS)
     cmd = client.create_publisher(Float64MultiArray, 'arm/joint_position_controller/commands', QOS)
     # Before the first command the current step is re-published: wait until every topic has delivered once.
     assert ros.spin_until(lambda: cmd.get_subscription_count() > 0 and all(seen.values()), timeout=10)
@@ -50,24 +51,27 @@ def test_publishes_rgb8_frames_of_the_model_with_joint_states_and_ground_truth(r
     js = seen['joints'][-1]
     assert list(js.name) == ['shoulder_roll', 'shoulder_pitch']
     assert list(js.position) == pytest.approx([-2.0, 1.1])
-    assert stamp_ns(js) == stamp_ns(img) == stamp_ns(seen['pose'][-1])
+    truth, contact = seen['truth'][-1], seen['contact'][-1]
+    assert stamp_ns(js) == stamp_ns(img) == stamp_ns(seen['pose'][-1]) == stamp_ns(truth) == stamp_ns(contact)
     assert seen['pose'][-1].pose.position.x == pytest.approx(model.object_position_[0])
-    assert seen['distance'][-1].data == pytest.approx(model.hand_object_distance([-2.0, 1.1]))
-    assert seen['contact'][-1].data is model.in_contact([-2.0, 1.1])
+    assert truth.object_position.x == pytest.approx(model.object_position_[0])
+    assert truth.hand_object_distance == pytest.approx(model.hand_object_distance([-2.0, 1.1]))
+    assert contact.in_contact is model.in_contact([-2.0, 1.1])
 
 
 def test_lockstep_moves_toward_the_target_at_the_speed_limit(rig):
     ros, sim, cmd, seen = rig
-    start = len(seen['joints'])
     target = [-1.0, 0.5]
     for k in range(1, 5):
         cmd.publish(Float64MultiArray(data=target))
-        assert ros.spin_until(lambda: len(seen['joints']) == start + k and len(seen['image']) >= start + k)
-    ros.spin_for(0.3)          # no re-publication once the loop runs, and no extra steps
-    assert len(seen['joints']) == start + 4
-    stamps = [stamp_ns(m) for m in seen['joints'][-5:]]
-    assert all(b - a == int(round(sim.dt * 1e9)) for a, b in zip(stamps, stamps[1:]))
-    q = [np.array(m.position) for m in seen['joints'][-5:]]
+        assert ros.spin_until(lambda: stamp_ns(seen['joints'][-1]) == k * int(round(sim.dt * 1e9))
+                              and stamp_ns(seen['image'][-1]) == stamp_ns(seen['joints'][-1]))
+    ros.spin_for(0.3)          # re-sends of the last step only (same stamp), no extra steps
+    assert sim.step_index == 4
+    by_stamp = {stamp_ns(m): m for m in seen['joints']}
+    stamps = sorted(by_stamp)
+    assert stamps == [k * int(round(sim.dt * 1e9)) for k in range(5)]
+    q = [np.array(by_stamp[s].position) for s in stamps]
     max_step = sim.max_joint_speed * sim.dt
     for a, b in zip(q, q[1:]):
         assert np.max(np.abs(b - a)) <= max_step + 1e-12
