@@ -125,7 +125,7 @@ def main(argv: Optional[List[str]] = None, prog: str = 'mm bag') -> int:
             print(reindex_bag(args.bag))
             return 0
         if args.command == 'play':
-            read_metadata(args.bag)  # fail fast with a clear message
+            format_info(args.bag, prog)  # fail fast with one clear line on a missing, empty or damaged file
             return _mm_run('mm_bringup', 'player', [
                 '-p', f'bag:={args.bag}', '-p', f'rate:={args.rate}', '-p',
                 f"publish_clock:={'true' if args.clock else 'false'}", '-p', f'topics:={literal(args.topics)}'])
