@@ -13,7 +13,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from mm_planner.arm_agent import (PHASE_EXECUTING, PHASE_FAILED, PHASE_GOAL_REACHED, PHASE_LEARNING,
-                                  ArmAgent, ArmObservation)
+                                  PHASE_WAITING_FOR_GOAL, ArmAgent, ArmObservation)
 
 MapPair = Tuple[np.ndarray, Optional[np.ndarray]]
 
@@ -23,8 +23,8 @@ def drive(agent: ArmAgent, scene, motion, joints: Sequence[float], stamp: int = 
           learn: Optional[Callable[[], MapPair]] = None,
           map_for_frame: Optional[Callable[[int, np.ndarray], MapPair]] = None, max_frames: int = 5000,
           on_frame: Optional[Callable[[int, np.ndarray, np.ndarray], None]] = None) -> Dict[str, object]:
-    """Run until the agent stops commanding (module docstring). `goal` is set once the agent waits for one (or
-    at once when it is EXPLORING/LEARNING, like a goal that arrives early). `on_frame(stamp, q_before, q_after)` is
+    """Run until the agent stops commanding (module docstring). `goal` is set once the agent waits for one
+    (WAITING_FOR_GOAL), as a user does; call again with the returned joints, stamp and contact to continue. `on_frame(stamp, q_before, q_after)` is
     called for every simulated motion (for evaluation, e.g. ground-truth contact along it).
     Returns commands (list of arrays), frames (stamps observed), joints (final), stamp (last frame), phase, detail,
     goal_stamp, map_requests."""
@@ -37,14 +37,16 @@ def drive(agent: ArmAgent, scene, motion, joints: Sequence[float], stamp: int = 
         frames.append(stamp)
         observation = ArmObservation(stamp, q, bool(contact))
         command = None
-        for _attempt in range(3):              # the node acts again on a frame when an event arrives for it
-            if not goal_sent:
+        for _attempt in range(6):              # the node acts again on a frame when an event arrives for it
+            if not goal_sent and agent.phase_ == PHASE_WAITING_FOR_GOAL:
                 agent.set_goal(goal, stamp if goal_stamp is None else goal_stamp)
                 goal_sent = True
             command = agent.step(observation)
             request = agent.take_map_request()
             if command is not None:
                 break
+            if not goal_sent and agent.phase_ == PHASE_WAITING_FOR_GOAL:
+                continue
             if agent.phase_ == PHASE_LEARNING and learn is not None:
                 collision, closeness = learn()
                 agent.set_map(collision, closeness, stamp)
