@@ -46,6 +46,8 @@ class Player(Node):
                                    min_value=0.0, max_value=60.0, read_only=True)
         self.played = 0
         self.problems: List[str] = []
+        if not self.bag:
+            raise BagError('parameter bag is empty: set it to the bag directory to play')
         self.info = read_metadata(self.bag)
         self.publishers_by_topic: Dict[str, object] = {}
         self.expected = 0     # messages metadata.yaml lists on the topics to play
