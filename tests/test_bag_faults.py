@@ -44,6 +44,10 @@ class NumberedPublisher:
             self.sent.append(time.monotonic())
 
 
+def bag_size(bag):
+    return sum(f.stat().st_size for f in bag.glob('*.mcap'))
+
+
 def recorded_numbers(bag):
     """Indices in the bag, in order (CDR string: 4-byte header, 4-byte length, text)."""
     return [int(bytes(m.data[8:]).split(b'|')[0]) for m in iter_messages(bag)]
@@ -58,10 +62,12 @@ def start_recording(ros, graph, bag, **parameters):
     return recorder, publisher
 
 
-def test_kill_9_loses_at_most_the_last_second_and_reindex_recovers_the_rest(ros, tmp_path):
+@pytest.mark.parametrize('payload', [64, 100_000])       # small sensor messages; ~10 MB/s like a camera
+def test_kill_9_loses_at_most_the_last_second_and_reindex_recovers_the_rest(ros, tmp_path, payload):
     bag = tmp_path / 'crashed'
     with ProcessGraph(log_dir=tmp_path / 'logs') as graph:
         recorder, publisher = start_recording(ros, graph, bag)
+        publisher.padding = 'x' * payload
         assert ros.spin_until(lambda: len(publisher.sent) >= 3 * RATE_HZ, timeout=30)
         os.killpg(recorder.process.pid, signal.SIGKILL)
         killed_at = time.monotonic()
@@ -77,7 +83,8 @@ def test_kill_9_loses_at_most_the_last_second_and_reindex_recovers_the_rest(ros,
     numbers = recorded_numbers(bag)
     assert numbers == list(range(len(numbers))), 'the recovered messages are not a gap-free prefix'
     lost_seconds = killed_at - publisher.sent[len(numbers) - 1]
-    print(f'\nkill -9 after {published} published messages ({published / RATE_HZ:.1f} s at {RATE_HZ:.0f} Hz): '
+    print(f'\nkill -9 after {published} published messages of {payload} B ({published / RATE_HZ:.1f} s at '
+          f'{RATE_HZ:.0f} Hz, {bag_size(bag) / 1e3:.0f} kB on disk): '
           f'{len(numbers)} recovered, {published - len(numbers)} lost = the last {lost_seconds:.2f} s')
     assert len(numbers) > 0 and lost_seconds <= 1.0
     assert read_metadata(bag)['message_count'] == len(numbers)

@@ -109,6 +109,8 @@ def main(argv: Optional[List[str]] = None, prog: str = 'mm bag') -> int:
     p_rec.add_argument('--exclude', nargs='*', default=['/rosout', '/parameter_events'])
     p_rec.add_argument('--compression', choices=['none', 'zstd', 'lz4'], default='none')
     p_rec.add_argument('--max-bag-size', type=int, default=0)
+    p_rec.add_argument('--flush-period', type=float, default=0.5,
+                       help='seconds after which a chunk is written even if not full (the most a kill -9 loses)')
     p_rec.add_argument('--overwrite', action='store_true')
     p_reindex = sub.add_parser('reindex', help='rebuild the index and metadata.yaml of a crashed recording')
     p_reindex.add_argument('bag')
@@ -133,11 +135,14 @@ def main(argv: Optional[List[str]] = None, prog: str = 'mm bag') -> int:
         return _mm_run('mm_bringup', 'recorder', [
             '-p', f'output:={args.output}', '-p', f'topics:={literal(topics)}',
             '-p', f'exclude:={literal(args.exclude)}', '-p', f'compression:={args.compression}',
-            '-p', f'max_bag_size:={args.max_bag_size}',
+            '-p', f'max_bag_size:={args.max_bag_size}', '-p', f'flush_period:={args.flush_period}',
             '-p', f"overwrite:={'true' if args.overwrite else 'false'}"])
     except BagError as exc:
         print(f'{prog}: {exc}', file=sys.stderr)
         return 1
+    except BrokenPipeError:      # output piped into `head`: not an error; keep Python from complaining at exit
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == '__main__':
