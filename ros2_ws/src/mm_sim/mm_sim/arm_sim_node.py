@@ -61,6 +61,8 @@ from mm_sim.arm_motion import move_towards, sweep
 LOOP_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 OBJECT_MODES = ('fixed', 'every_n_frames', 'on_request')
 COMMAND_TOPIC = 'arm/joint_position_controller/commands'
+# A lockstep loop idle this long [ns of wall time] with nobody able to command it is reported.
+UNMATCHED_WARNING_NS = 5_000_000_000
 # Random places drawn before giving up on one that keeps clear of the arm's current pose.
 PLACEMENT_ATTEMPTS = 200
 
@@ -132,11 +134,12 @@ class ArmSim(Node):
         self.contact_pub = self.create_publisher(Contact, 'arm/contact', LOOP_QOS)
         self.truth_pub = self.create_publisher(ArmGroundTruth, 'arm/ground_truth/state', LOOP_QOS)
         self.object_pub = self.create_publisher(PoseStamped, 'arm/ground_truth/object_pose', LOOP_QOS)
-        self.create_subscription(Float64MultiArray, COMMAND_TOPIC, self._on_command, LOOP_QOS)
+        self.command_sub = self.create_subscription(Float64MultiArray, COMMAND_TOPIC, self._on_command, LOOP_QOS)
         self.create_service(PlaceObject, 'arm/place_object', self._on_place_object)
         self._last_step: Optional[list] = None      # (publisher, message) pairs of the last step, for re-sending
         self._wall = WallClock(clock_type=ClockType.STEADY_TIME)
         self._last_sent_ns = 0
+        self._last_step_ns = 0          # wall time of the last new step (not a re-send)
         if self.lockstep:
             # Wall clock: sim time stands still while the loop waits, which is exactly when re-sending matters.
             self.create_timer(min(self.republish_period, 0.05), self._resend_if_idle, clock=self._wall)
@@ -343,6 +346,7 @@ class ArmSim(Node):
         self._last_step = [(self.clock_pub, Clock(clock=stamp)), (self.image_pub, img), (self.joint_pub, joints),
                            (self.contact_pub, contact), (self.truth_pub, truth), (self.object_pub, pose)]
         self._send_last_step()
+        self._last_step_ns = self._last_sent_ns
 
     def _send_last_step(self) -> None:
         for publisher, msg in self._last_step:
@@ -350,8 +354,13 @@ class ArmSim(Node):
         self._last_sent_ns = self._wall.now().nanoseconds
 
     def _resend_if_idle(self) -> None:
-        if self._wall.now().nanoseconds - self._last_sent_ns >= self.republish_period * 1e9:
+        now = self._wall.now().nanoseconds
+        if now - self._last_sent_ns >= self.republish_period * 1e9:
             self._send_last_step()
+        if now - self._last_step_ns > UNMATCHED_WARNING_NS and self.command_sub.get_publisher_count() == 0:
+            self.get_logger().warn(f'lockstep loop waiting at step {self.step_index}: no publisher of '
+                                   f'{COMMAND_TOPIC} is matched (check its name, type and QoS)',
+                                   throttle_duration_sec=10.0)
 
 
 def main(args=None):
