@@ -80,11 +80,10 @@ class Recorder(Node):
                              'MCAP chunk size in bytes: a chunk is committed to disk when it reaches this size',
                              min_value=0, max_value=2**31, read_only=True)
         flush_period = declare(self, 'flush_period', 0.5,
-                               'Seconds after which a chunk is committed (written, fsynced) even if not full: '
+                               'Seconds after which a chunk is written to the file even if not full: '
                                'the most data a kill -9 can lose', min_value=0.01, max_value=60.0, read_only=True)
-        self.drain_period = declare(self, 'drain_period', 0.3,
-                                    'Seconds spent taking already-delivered messages after SIGINT/SIGTERM',
-                                    min_value=0.0, max_value=10.0)
+        declare(self, 'drain_period', 0.3, 'Seconds spent taking already-delivered messages after a stop signal',
+                min_value=0.0, max_value=10.0)
         self.queue_depth = declare(self, 'queue_depth', 1000, 'Subscription history depth per topic',
                                    min_value=1, max_value=100000, read_only=True)
         if not output:
@@ -211,7 +210,7 @@ def main(args=None):
         executor.add_node(node)
         while not stop.is_set() and rclpy.ok():
             executor.spin_once(timeout_sec=0.05)
-        drain_until = time.monotonic() + node.drain_period
+        drain_until = time.monotonic() + node.get_parameter('drain_period').value   # settable until the end
         while time.monotonic() < drain_until and rclpy.ok():
             executor.spin_once(timeout_sec=0.01)
     except (KeyboardInterrupt, ExternalShutdownException):
