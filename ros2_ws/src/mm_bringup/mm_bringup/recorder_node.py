@@ -164,7 +164,7 @@ class Recorder(Node):
                         self.writer.write(*item)
                     else:
                         self.dropped += 1
-            except BagError as exc:
+            except (BagError, OSError) as exc:
                 # reported at once (the writer has already closed the bag with what was committed)
                 self.get_logger().error(f'{exc}; the bag in {self.writer.directory} stays readable')
 

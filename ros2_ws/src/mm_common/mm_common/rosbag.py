@@ -193,8 +193,9 @@ class McapFile:
 
     Schema and channel records go into the data section outside chunks; messages are grouped into a chunk that
     `commit()` hands to the OS together with its message indexes in one unbuffered write (what a killed process
-    wrote survives it); `sync()` forces it to the disk, `finish()` does so when `fsync` is set. The summary is built from committed state only: after a failed write the file is cut back to the last
-    commit and `finish()` still appends a consistent summary, so a killed or starved recorder leaves a readable prefix.
+    wrote survives it); `sync()` forces it to the disk, `finish()` does so when `fsync` is set. The summary is built
+    from committed state only: after a failed write the file is cut back to the last commit and `finish()` still
+    appends a consistent summary, so a killed or starved recorder leaves a readable prefix.
     """
 
     def __init__(self, path: os.PathLike, *, compression: str = 'none', profile: str = 'ros2',
@@ -220,7 +221,11 @@ class McapFile:
         self._file: Optional[io.FileIO] = open_file(self.path)   # unbuffered: a commit is on disk or cut back
         builder = RecordBuilder()
         Header(profile=profile, library=library).write(builder)
-        self._append(MCAP0_MAGIC + builder.end())
+        try:
+            self._append(MCAP0_MAGIC + builder.end())
+        except OSError:
+            self.abandon()
+            raise
 
     @property
     def pending_bytes(self) -> int:
@@ -581,13 +586,10 @@ class BagWriter:
             raise BagError(f'topic {topic} was not added')
         if self.max_bag_size and (self._current.message_count or self._current.pending_messages) and \
                 self._current.size + self._current.pending_bytes >= self.max_bag_size:
-            self._commit()
-            self._finish_file()
-            self._open_next_file()
-            self._write_metadata_file()
+            self._split()
         self._current.add_message(self._channel_ids[topic], int(log_time_ns),
-                               int(publish_time_ns if publish_time_ns is not None else log_time_ns),
-                               bytes(data), self._sequence)
+                                  int(publish_time_ns if publish_time_ns is not None else log_time_ns),
+                                  bytes(data), self._sequence)
         self._sequence += 1
         self._pending[topic] += 1
         if self._pending_since is None:
@@ -629,17 +631,34 @@ class BagWriter:
                 self._fail(exc)
             self._last_sync = self._clock()
 
+    def _split(self) -> None:
+        """Finish the current file and continue in `<name>_<n+1>.mcap`; metadata.yaml lists both from now on."""
+        self._commit()
+        self._finish_file()
+        try:
+            self._open_next_file()
+        except OSError as exc:
+            self._closed = True      # every file so far is finished: only metadata.yaml is left to write
+            self._stop(exc, self.directory / _bag_file_name(self.name, len(self._files)), 1)  # the message at hand
+        self._write_metadata_file()
+
     def _fail(self, exc: OSError) -> None:
         """Stop recording after a failed write: keep everything committed, close the bag as well as the disk allows."""
         lost = self._current.discard_pending()
-        self.lost_messages += lost
         self._pending.clear()
         self._pending_since = None
+        self._stop(exc, self._current.path, lost)
+
+    def _stop(self, exc: OSError, path: Path, lost: int) -> None:
+        self.lost_messages += lost
         full = exc.errno in (errno.ENOSPC, errno.EDQUOT)
-        self.failure = (f"{'disk full' if full else 'write failed'} writing {self._current.path} "
-                        f'({exc.strerror or exc}); recording stopped, {lost} messages of the last chunk lost')
+        self.failure = (f"{'disk full' if full else 'write failed'} writing {path} ({exc.strerror or exc}); "
+                        f'recording stopped, {lost} messages of the last chunk lost')
         self._reserve.unlink(missing_ok=True)   # room for the summary and metadata.yaml
-        self.close()
+        if self._closed:
+            self._write_metadata_file()
+        else:
+            self.close()
         raise (BagDiskFull if full else BagError)(self.failure) from exc
 
     def metadata(self) -> dict:

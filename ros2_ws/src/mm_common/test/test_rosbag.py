@@ -286,3 +286,20 @@ def test_file_summaries_count_what_the_files_hold(tmp_path):
     assert truncated.scanned and truncated.error.startswith('truncated')
     with pytest.raises(BagError, match='truncated'):
         list(iter_messages(tmp_path / 'bag'))
+
+
+def test_no_room_for_the_next_split_file_keeps_the_finished_ones(tmp_path):
+    def open_file(path):
+        if path.name == 'bag_2.mcap':
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return open(path, 'wb', buffering=0)
+
+    clock = FakeClock()
+    writer = BagWriter(tmp_path / 'bag', clock=clock, max_bag_size=3000, chunk_size=500, open_file=open_file)
+    writer.add_topic('/text', 'std_msgs/msg/String', [QosSummary()])
+    with pytest.raises(BagDiskFull, match='bag_2.mcap'):
+        text_messages(writer, clock, 1000, size=100)
+    meta = read_metadata(tmp_path / 'bag')
+    assert meta['relative_file_paths'] == ['bag_0.mcap', 'bag_1.mcap'] and writer.lost_messages == 1
+    assert recorded_indices(tmp_path / 'bag') == list(range(meta['message_count']))
+    assert meta['message_count'] == writer.topics['/text'].message_count > 10
