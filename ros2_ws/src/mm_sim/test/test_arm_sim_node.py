@@ -56,7 +56,7 @@ def test_publishes_rgb8_frames_of_the_model_with_joint_states_and_ground_truth(r
     assert seen['pose'][-1].pose.position.x == pytest.approx(model.object_position_[0])
     assert truth.object_position.x == pytest.approx(model.object_position_[0])
     assert truth.hand_object_distance == pytest.approx(model.hand_object_distance([-2.0, 1.1]))
-    assert contact.in_contact is model.in_contact([-2.0, 1.1])
+    assert contact.in_contact is contact.in_contact_at_frame is model.in_contact([-2.0, 1.1])
 
 
 def test_lockstep_moves_toward_the_target_at_the_speed_limit(rig):

@@ -182,12 +182,15 @@ def test_contact_of_a_link_along_a_fast_motion_that_the_end_poses_miss():
         assert truth.link_contact and 'forearm' in truth.contact_parts and truth.min_link_clearance < 0
         assert truth.contact_steps == 1 and truth.contact_events == 1
         assert touch.in_contact == truth.hand_contact == ('hand' in truth.contact_parts)
+        assert not touch.in_contact_at_frame
         assert truth.min_hand_object_distance < truth.hand_object_distance
         rig.command(end + [0.1, 0.0])             # clear of the object: counts stay, no new event
         truth = rig.latest('truth')
         assert not truth.link_contact and truth.contact_steps == 1 and truth.contact_events == 1
         rig.command(start)                        # back through it: a second event
         assert rig.latest('truth').contact_steps == 2 and rig.latest('truth').contact_events == 2
+        rig.command(model.inverse_kinematics(obstacle))     # the hand ends on the object
+        assert rig.latest('contact').in_contact and rig.latest('contact').in_contact_at_frame
     finally:
         rig.close()
 
