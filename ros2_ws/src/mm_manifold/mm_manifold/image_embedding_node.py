@@ -1,40 +1,52 @@
-"""Image embedding node: learns the arm's low-dimensional state from camera frames online (paper Section 3).
+"""Image embedding node: learns the arm's low-dimensional state from camera frames online (paper Section 3) and
+builds the collision map the planner needs for the object where the current frame shows it.
 
     ./mm run mm_manifold image_embedding --ros-args -p use_sim_time:=true -p min_training_frames:=500
 
 Subscribes only to what the robot senses: `arm/camera/image_raw` (sensor_msgs/Image rgb8/bgr8/mono8),
-`arm/joint_states` and `arm/contact` (the touch sensor on the hand, the "contact" label). Never ground truth.
+`arm/joint_states` and `arm/contact` (mm_msgs/Contact, the touch sensor on the hand: the "contact" label, stamped
+with its frame), plus `arm/embedding/map_request` (std_msgs/Header from the planner: the stamp of the frame a map is
+needed of). Never ground truth.
 
 Every image: SIFT keypoints (mm_manifold.keypoints). A frame whose joint state and touch reading of the same stamp
 have arrived joins the training set. When `min_training_frames` frames are in, a background thread fits
-mm_manifold.arm_learning.ArmStateLearner (keypoint labels, nearest-neighbour imputation, 3-D LLE and PCA, the
-contact region - sphere, ellipsoid or quadric - with a cross-validated radius, the collision map on the joint grid);
-it refits after every
-`refit_every` further frames. Callbacks never wait for a fit: the new model is swapped in by the next callback.
-Publishes `arm/embedding/state` (mm_msgs/EmbeddingState) for every image - with `model_ready` false before the first
-fit, so a lockstep explorer can pace itself on it - and `arm/embedding/collision_map` (mm_msgs/CollisionMap,
-TRANSIENT_LOCAL so a late planner gets the latest map) after each fit. How a cell is predicted: see
-mm_manifold.arm_learning (share of the cell's training frames whose region closeness is at least -map_margin); the
-map also carries each cell's closeness, from which dp_planner keeps clear of the contact region.
+mm_manifold.arm_learning.ArmStateLearner (keypoint labels, imputation, 3-D LLE and PCA, the contact region with a
+cross-validated radius); it refits after every `refit_every` further frames, and a refit whose cross-validated
+TPR - FPR is below the live model's is discarded (logged). Callbacks never wait for a fit: the new model is
+swapped in by the executor thread; the fitting thread shares no mutable state with it (a snapshot in, a model out,
+under a lock).
+
+The model is kept across object placements. Collision maps come from the current image plus what was learned
+(ArmStateLearner.predict_collision_map: the hand predicted in image space for every cell of the joint grid, the
+predicted frame embedded, the contact region applied), built for the newest frame after each fit and for every map
+request (from the requested frame, or the first later one, plus at most `map_recent_frames` frames before it).
+Published on `arm/embedding/collision_map` (mm_msgs/CollisionMap, TRANSIENT_LOCAL so a late planner gets the latest
+map) with `header.stamp` = the frame it was built from; the log line says how many frames went into it.
+Publishes `arm/embedding/state` (mm_msgs/EmbeddingState) for every image, with `model_ready` false before the first
+fit, so a lockstep explorer can pace itself on it.
 
 With `model_path` set, each fitted model is written there atomically (np.savez + JSON, no pickle) and loaded at start;
-an unreadable file is logged as an error and the node learns again from scratch.
+a file that cannot be read or does not fit this node's grid and limits is logged and the node learns from scratch.
+Every input is validated; a bad one is dropped with a throttled log line and the node keeps running.
 """
 from __future__ import annotations
 
+import collections
+import math
 import threading
 from pathlib import Path
 from typing import Dict, Optional
 
 import cv2
 import numpy as np
-from mm_common.node_utils import declare, reject_non_finite, run_node
+from mm_common.node_utils import check_parameters, declare, ordered, reject_input, run_node
 from mm_msgs.msg import CollisionMap, Contact, EmbeddingState
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Image, JointState
+from std_msgs.msg import Header
 
 from mm_manifold.arm_learning import ArmStateLearner, ModelFileError
 from mm_manifold.keypoints import KeypointExtractor
@@ -44,7 +56,13 @@ LOOP_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, history=
 # The collision map is latched state: TRANSIENT_LOCAL, the latest one is what a (late) planner needs.
 MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                      history=HistoryPolicy.KEEP_LAST)
+# Map requests: RELIABLE (the planner waits for the answer), volatile (a request is about the present frame only).
+REQUEST_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 ENCODINGS = {'rgb8': 3, 'bgr8': 3, 'mono8': 1}
+MIN_IMAGE_SIZE = 16          # px: smaller images carry no usable keypoints (and break the half-scale SIFT pass)
+MAX_IMAGE_SIZE = 4096
+RECENT_FRAMES = 50           # keypoints of the newest frames kept for map requests
+MAX_PENDING = 200
 
 
 def stamp_ns(header) -> int:
@@ -58,8 +76,10 @@ def image_to_array(msg: Image, expected_size: Optional[int] = None) -> np.ndarra
         raise ValueError(f'unsupported encoding {msg.encoding!r} (expected one of {sorted(ENCODINGS)})')
     if expected_size and (msg.width != expected_size or msg.height != expected_size):
         raise ValueError(f'image is {msg.width}x{msg.height}, expected {expected_size}x{expected_size}')
-    if msg.width == 0 or msg.height == 0 or msg.step < msg.width * channels:
-        raise ValueError(f'bad image geometry {msg.width}x{msg.height}, step {msg.step}')
+    if not (MIN_IMAGE_SIZE <= msg.width <= MAX_IMAGE_SIZE and MIN_IMAGE_SIZE <= msg.height <= MAX_IMAGE_SIZE):
+        raise ValueError(f'image is {msg.width}x{msg.height}; sides must be {MIN_IMAGE_SIZE}-{MAX_IMAGE_SIZE} px')
+    if msg.step < msg.width * channels:
+        raise ValueError(f'row step {msg.step} is shorter than {msg.width} px x {channels} channels')
     if len(msg.data) != msg.step * msg.height:
         raise ValueError(f'image data has {len(msg.data)} bytes, expected {msg.step * msg.height}')
     buf = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, (bytes, bytearray)) else msg.data, np.uint8)
@@ -70,6 +90,11 @@ def image_to_array(msg: Image, expected_size: Optional[int] = None) -> np.ndarra
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if msg.encoding == 'bgr8' else np.ascontiguousarray(img)
 
 
+def model_score(learner: ArmStateLearner) -> float:
+    """Cross-validated TPR - FPR of the model's contact region (on its own training frames)."""
+    return float(learner.selection_['cv_tpr']) - float(learner.selection_['cv_fpr'])
+
+
 class ImageEmbeddingNode(Node):
     def __init__(self, **node_kwargs):
         super().__init__('image_embedding', **node_kwargs)
@@ -78,17 +103,20 @@ class ImageEmbeddingNode(Node):
         self.refit_every = declare(self, 'refit_every', 300, 'Refit after this many new frames (0 = never)',
                                    min_value=0, max_value=100000)
         self.max_training_frames = declare(self, 'max_training_frames', 1500,
-                                           'Most frames kept for fitting (older ones are dropped at random)',
-                                           min_value=20, max_value=100000)
-        self.image_size = declare(self, 'image_size', 400, 'Expected square image size [px] (0 = any)',
-                                  min_value=0, max_value=4096)
+                                           'Most frames kept for fitting (older ones are dropped at random); '
+                                           '>= min_training_frames', min_value=20, max_value=100000)
+        self.image_size = declare(self, 'image_size', 400, 'Expected square image size [px] (0 = any size from '
+                                  f'{MIN_IMAGE_SIZE} to {MAX_IMAGE_SIZE})', min_value=0, max_value=MAX_IMAGE_SIZE)
+        self.map_recent_frames = declare(self, 'map_recent_frames', 0, 'Frames before the mapped one that a '
+                                         'collision map may also use (0 = the mapped frame alone)', min_value=0,
+                                         max_value=RECENT_FRAMES - 1)
         image_qos = declare(self, 'image_qos', 'reliable', "Camera subscription QoS: 'reliable' (lockstep) or "
                             "'sensor_data' (free-running camera)", read_only=True,
                             additional_constraints="one of reliable, sensor_data")
         self.model_path = declare(self, 'model_path', '', 'Where to save / load the model (.npz); empty = never',
                                   read_only=True)
         self.random_seed = declare(self, 'random_seed', 0, 'Seed of every random choice in learning',
-                                   min_value=0, max_value=2**31 - 1)
+                                   min_value=0, max_value=2**31 - 1, read_only=True)
         p = dict(
             n_components=declare(self, 'n_components', 3, 'Embedding dimension', min_value=1, max_value=10,
                                  read_only=True),
@@ -116,25 +144,32 @@ class ImageEmbeddingNode(Node):
         )
         if image_qos not in ('reliable', 'sensor_data'):
             raise ValueError("image_qos must be 'reliable' or 'sensor_data'")
+        if self.min_training_frames > self.max_training_frames:
+            raise ValueError(f'min_training_frames={self.min_training_frames} must be <= '
+                             f'max_training_frames={self.max_training_frames}')
         self.learner_params = p
-        ArmStateLearner(**p)        # validate the combination now, not in the first fit
+        ArmStateLearner(**p)        # validate the combination (grid, limits) now, not in the first fit
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.extractor = KeypointExtractor()
         self.model: Optional[ArmStateLearner] = None
         self.frames: Dict[str, list] = {'kp': [], 'joints': [], 'contact': [], 'stamp': []}
         self.pending: Dict[int, dict] = {}
+        self.recent = collections.OrderedDict()     # stamp -> keypoints of the newest frames
         self.known_stamps = set()
+        self.map_request: Optional[int] = None
+        self.maps_published = 0
         self.images_received = 0
         self.images_rejected = 0
         self.fits_done = 0
-        self.fits_failed = 0
+        self.fits_discarded = 0
         self._frames_at_last_attempt = 0
-        self._last_attempt_failed = False
         self._rng = np.random.default_rng(self.random_seed)
+        # Hand-over between the fitting thread and the executor: only these three, only under the lock.
         self._lock = threading.Lock()
         self._fit_thread: Optional[threading.Thread] = None
-        self._fitted: Optional[ArmStateLearner] = None
+        self._fit_result: Optional[tuple] = None          # (learner or None, error message)
+        self._last_attempt_failed = False
 
         self.state_pub = self.create_publisher(EmbeddingState, 'arm/embedding/state', LOOP_QOS)
         self.map_pub = self.create_publisher(CollisionMap, 'arm/embedding/collision_map', MAP_QOS)
@@ -142,6 +177,7 @@ class ImageEmbeddingNode(Node):
                                  LOOP_QOS if image_qos == 'reliable' else qos_profile_sensor_data)
         self.create_subscription(JointState, 'arm/joint_states', self._on_joints, LOOP_QOS)
         self.create_subscription(Contact, 'arm/contact', self._on_contact, LOOP_QOS)
+        self.create_subscription(Header, 'arm/embedding/map_request', self._on_map_request, REQUEST_QOS)
         # Wall-clock timer: picks up a finished fit even while sim time stands still (lockstep loop waiting).
         self.create_timer(0.1, self._install_fitted, clock=Clock(clock_type=ClockType.STEADY_TIME))
         if self.model_path:
@@ -151,23 +187,28 @@ class ImageEmbeddingNode(Node):
 
     # --- parameters -------------------------------------------------------------------------------------------
     def _on_set_parameters(self, params) -> SetParametersResult:
-        result = reject_non_finite(params)
+        result = check_parameters(self, params, [ordered('min_training_frames', 'max_training_frames')])
         if not result.successful:
             return result
+        learner_update = {p.name: p.value for p in params
+                          if p.name in ('cell_min_frames', 'cell_collision_fraction', 'map_margin')}
+        if learner_update:
+            try:
+                ArmStateLearner(**{**self.learner_params, **learner_update})
+            except ValueError as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
         for p in params:
             if p.name == 'min_training_frames':
                 self.min_training_frames = int(p.value)
             elif p.name == 'refit_every':
                 self.refit_every = int(p.value)
             elif p.name == 'max_training_frames':
-                if int(p.value) < self.min_training_frames:
-                    return SetParametersResult(successful=False,
-                                               reason='max_training_frames must be >= min_training_frames')
                 self.max_training_frames = int(p.value)
             elif p.name == 'image_size':
                 self.image_size = int(p.value)
-            elif p.name in ('cell_min_frames', 'cell_collision_fraction', 'map_margin'):
-                self.learner_params[p.name] = p.value     # used from the next fit on
+            elif p.name == 'map_recent_frames':
+                self.map_recent_frames = int(p.value)
+        self.learner_params.update(learner_update)        # used from the next fit on
         return SetParametersResult(successful=True)
 
     # --- persistence ------------------------------------------------------------------------------------------
@@ -177,12 +218,20 @@ class ImageEmbeddingNode(Node):
             self.get_logger().info(f'no saved model at {path}; learning from scratch')
             return
         try:
-            self.model = ArmStateLearner.load(path)
+            model = ArmStateLearner.load(path)
         except ModelFileError as exc:
             self.get_logger().error(f'cannot use the saved model, learning from scratch: {exc}')
             return
-        self.get_logger().info(f'loaded model from {path} ({self.model.n_frames_} training frames)')
-        self._publish_map(self.model)
+        want_shape = tuple(self.learner_params['grid_shape'])
+        want_limits = np.asarray(self.learner_params['joint_limits'], dtype=float)
+        if model.grid_shape != want_shape or not np.allclose(model.joint_limits, want_limits):
+            self.get_logger().error(f'saved model {path} is for a {model.grid_shape} grid over '
+                                    f'{model.joint_limits.tolist()}, this node uses {want_shape} over '
+                                    f'{want_limits.tolist()}: learning from scratch')
+            return
+        self.model = model
+        self.map_request = 0            # a map of the first frame that comes in
+        self.get_logger().info(f'loaded model from {path} ({model.n_frames_} training frames)')
 
     # --- inputs -----------------------------------------------------------------------------------------------
     def _entry(self, stamp: int) -> Optional[dict]:
@@ -191,15 +240,14 @@ class ImageEmbeddingNode(Node):
         entry = self.pending.get(stamp)
         if entry is None:
             entry = self.pending[stamp] = {}
-            if len(self.pending) > 200:         # parts that never completed (lost messages): forget the oldest
-                for old in sorted(self.pending)[:len(self.pending) - 200]:
+            if len(self.pending) > MAX_PENDING:         # parts that never completed (lost messages): forget oldest
+                for old in sorted(self.pending)[:len(self.pending) - MAX_PENDING]:
                     del self.pending[old]
         return entry
 
     def _on_joints(self, msg: JointState) -> None:
-        if len(msg.position) != 2 or not np.all(np.isfinite(msg.position)):
-            self.get_logger().warn(f'ignoring joint state with {len(msg.position)} positions (need 2 finite)',
-                                   throttle_duration_sec=2.0)
+        if len(msg.position) != 2 or not all(math.isfinite(v) for v in msg.position):
+            reject_input(self, 'arm/joint_states', f'need 2 finite positions, got {list(msg.position)}')
             return
         stamp = stamp_ns(msg.header)
         entry = self._entry(stamp)
@@ -208,24 +256,30 @@ class ImageEmbeddingNode(Node):
             self._complete(stamp)
 
     def _on_contact(self, msg: Contact) -> None:
-        # The touch reading of a frame carries the frame's stamp: it joins the joint state and image of that stamp.
         stamp = stamp_ns(msg.header)
         entry = self._entry(stamp)
         if entry is not None:
             entry['contact'] = bool(msg.in_contact)
             self._complete(stamp)
 
+    def _on_map_request(self, msg: Header) -> None:
+        stamp = stamp_ns(msg)
+        if stamp < 0 or (self.recent and stamp < next(iter(self.recent))):
+            reject_input(self, 'arm/embedding/map_request', f'frame {stamp} ns is older than every frame kept')
+            return
+        self.map_request = stamp
+        self._serve_map_request()
+
     def _on_image(self, msg: Image) -> None:
         self._install_fitted()
         try:
             image = image_to_array(msg, self.image_size or None)
-        except ValueError as exc:
+            kp = self.extractor(image)
+        except (ValueError, cv2.error) as exc:
             self.images_rejected += 1
-            self.get_logger().warn(f'rejected image ({self.images_rejected} so far): {exc}',
-                                   throttle_duration_sec=2.0)
+            reject_input(self, 'arm/camera/image_raw', f'{exc} ({self.images_rejected} rejected so far)')
             return
         self.images_received += 1
-        kp = self.extractor(image)
         stamp = stamp_ns(msg.header)
         out = EmbeddingState(header=msg.header, keypoints_detected=len(kp), model_ready=self.model is not None)
         if self.model is not None:
@@ -236,10 +290,15 @@ class ImageEmbeddingNode(Node):
             out.training_frames = self.model.n_frames_
             out.collision_predicted = s['collision']
             out.closeness = s['closeness']
+        self.recent[stamp] = kp
+        self.recent.move_to_end(stamp)
+        while len(self.recent) > RECENT_FRAMES:
+            self.recent.popitem(last=False)
         entry = self._entry(stamp)
         if entry is not None:
             entry['kp'] = kp
             self._complete(stamp)
+        self._serve_map_request()
         self.state_pub.publish(out)
 
     def _complete(self, stamp: int) -> None:
@@ -248,17 +307,54 @@ class ImageEmbeddingNode(Node):
             return
         del self.pending[stamp]
         self.known_stamps.add(stamp)
-        with self._lock:
-            f = self.frames
-            f['kp'].append(entry['kp'])
-            f['joints'].append(entry['joints'])
-            f['contact'].append(entry['contact'])
-            f['stamp'].append(stamp)
-            if len(f['kp']) > self.max_training_frames:
-                drop = int(self._rng.integers(len(f['kp'])))
-                for key in f:
-                    f[key].pop(drop)
+        f = self.frames
+        f['kp'].append(entry['kp'])
+        f['joints'].append(entry['joints'])
+        f['contact'].append(entry['contact'])
+        f['stamp'].append(stamp)
+        if len(f['kp']) > self.max_training_frames:
+            drop = int(self._rng.integers(len(f['kp'])))
+            for key in f:
+                f[key].pop(drop)
         self._maybe_fit()
+
+    # --- collision maps ---------------------------------------------------------------------------------------
+    def _serve_map_request(self) -> None:
+        """Build the requested map once the model and a frame at or after the requested stamp are there."""
+        if self.map_request is None or self.model is None:
+            return
+        later = [s for s in self.recent if s >= self.map_request]
+        if not later:
+            return
+        self.map_request = None
+        self._publish_map(min(later))
+
+    def _publish_map(self, stamp: int) -> None:
+        stamps = list(self.recent)
+        i = stamps.index(stamp)
+        recent = [self.recent[s] for s in stamps[max(0, i - self.map_recent_frames):i]]
+        try:
+            pred = self.model.predict_collision_map(self.recent[stamp], recent)
+            collision = np.asarray(pred['collision'], dtype=bool)
+            closeness = np.asarray(pred['closeness'], dtype=float)
+            if collision.shape != self.model.grid_shape or closeness.shape != collision.shape:
+                raise ValueError(f'prediction of shape {collision.shape} for a {self.model.grid_shape} grid')
+        except Exception as exc:     # a failed prediction must not end the node; the planner times out and says so
+            self.get_logger().error(f'collision map of frame {stamp * 1e-9:.3f} s failed: {exc}')
+            return
+        m = CollisionMap()
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        m.header.frame_id = 'joint_grid'
+        m.rows, m.cols = self.model.grid_shape
+        m.joint0_limits = [float(v) for v in self.model.joint_limits[0]]
+        m.joint1_limits = [float(v) for v in self.model.joint_limits[1]]
+        m.collision = [bool(v) for v in collision.ravel()]
+        m.closeness = [float(v) for v in np.where(np.isnan(closeness), -np.inf, closeness).ravel()]
+        self.map_pub.publish(m)
+        self.maps_published += 1
+        self.get_logger().info(f'collision map {self.maps_published} of frame {stamp * 1e-9:.3f} s from '
+                               f'{1 + len(recent)} frame(s) of the current scene: {int(collision.sum())} '
+                               'collision cells')
 
     # --- learning ---------------------------------------------------------------------------------------------
     @property
@@ -266,8 +362,9 @@ class ImageEmbeddingNode(Node):
         return len(self.frames['kp'])
 
     def _maybe_fit(self) -> None:
-        if self._fit_thread is not None:
-            return
+        with self._lock:
+            if self._fit_thread is not None:
+                return
         n, since = self.n_frames, self.n_frames - self._frames_at_last_attempt
         if self.model is None and not self._last_attempt_failed:
             due = n >= self.min_training_frames
@@ -277,59 +374,61 @@ class ImageEmbeddingNode(Node):
             due = self.refit_every > 0 and since >= self.refit_every
         if not due:
             return
-        with self._lock:
-            snapshot = {k: list(v) for k, v in self.frames.items()}
+        snapshot = {k: list(v) for k, v in self.frames.items()}
         self._frames_at_last_attempt = n
-        self._fit_thread = threading.Thread(target=self._fit, args=(snapshot, dict(self.learner_params)),
-                                            name='embedding_fit', daemon=True)
-        self._fit_thread.start()
-
-    def _fit(self, data: dict, params: dict) -> None:
-        """Background thread: fit, save, hand the model over (installed by the executor thread)."""
-        try:
-            learner = ArmStateLearner(random_state=self.random_seed, **params).fit(
-                data['kp'], np.array(data['joints']), np.array(data['contact']), np.array(data['stamp']))
-            if self.model_path:
-                learner.save(self.model_path)
-        except Exception as exc:        # keep collecting and retry; the node must not die on a bad batch
-            self.get_logger().error(f'fit on {len(data["kp"])} frames failed: {exc}')
-            with self._lock:
-                self.fits_failed += 1
-                self._last_attempt_failed = True
-                self._fit_thread = None
-            return
+        thread = threading.Thread(target=self._fit, name='embedding_fit', daemon=True,
+                                  args=(snapshot, dict(self.learner_params), self.random_seed, self.model_path))
         with self._lock:
-            self._fitted = learner
-            self._last_attempt_failed = False
+            self._fit_thread = thread
+        thread.start()
+
+    def _fit(self, data: dict, params: dict, seed: int, model_path: str) -> None:
+        """Background thread: fit on its own snapshot and hand the result over under the lock. It touches no other
+        attribute of the node (saving happens on the executor once the model is accepted)."""
+        try:
+            learner = ArmStateLearner(random_state=seed, **params).fit(
+                data['kp'], np.array(data['joints']), np.array(data['contact']), np.array(data['stamp']))
+            result = (learner, '')
+        except Exception as exc:        # keep collecting and retry; the node must not die on a bad batch
+            result = (None, f'fit on {len(data["kp"])} frames failed: {exc}')
+        with self._lock:
+            self._fit_result = result
 
     def _install_fitted(self) -> None:
         with self._lock:
-            learner, self._fitted = self._fitted, None
-            if learner is not None:
+            result, self._fit_result = self._fit_result, None
+            if result is not None:
                 self._fit_thread = None
+        if result is None:
+            return
+        learner, error = result
+        self._last_attempt_failed = learner is None
         if learner is None:
+            self.get_logger().error(error)
+            return
+        if self.model is not None and model_score(learner) < model_score(self.model):
+            self.fits_discarded += 1
+            self.get_logger().warn(
+                f'refit on {learner.n_frames_} frames discarded: cross-validated TPR-FPR {model_score(learner):.3f} '
+                f'is below the live model\'s {model_score(self.model):.3f} ({self.model.n_frames_} frames)')
+            self._maybe_fit()
             return
         self.model = learner
         self.fits_done += 1
+        if self.model_path:
+            try:
+                learner.save(self.model_path)
+            except OSError as exc:
+                self.get_logger().error(f'cannot save the model to {self.model_path}: {exc}')
         v = learner.selection_
         self.get_logger().info(
             f'fit {self.fits_done}: {learner.n_frames_} frames, {learner.vectorizer_.n_labels_} labels, '
             f"{int(learner.train_contact_.sum())} contact frames, contact region {v['model']} "
-            f"(cross-validated TPR {v['cv_tpr']:.3f} FPR {v['cv_fpr']:.3f}), "
-            f'{int(learner.collision_map_.sum())} collision cells')
-        self._publish_map(learner)
+            f"(cross-validated TPR {v['cv_tpr']:.3f} FPR {v['cv_fpr']:.3f})")
+        if self.recent:
+            self._publish_map(next(reversed(self.recent)))       # the newest frame: the scene as it is now
+        self._serve_map_request()
         self._maybe_fit()
-
-    def _publish_map(self, learner: ArmStateLearner) -> None:
-        m = CollisionMap()
-        m.header.stamp = self.get_clock().now().to_msg()
-        m.header.frame_id = 'joint_grid'
-        m.rows, m.cols = learner.grid_shape
-        m.joint0_limits = [float(v) for v in learner.joint_limits[0]]
-        m.joint1_limits = [float(v) for v in learner.joint_limits[1]]
-        m.collision = [bool(v) for v in learner.collision_map_.ravel()]
-        m.closeness = [float(v) for v in learner.closeness_map_.ravel()]
-        self.map_pub.publish(m)
 
 
 def main(args=None):

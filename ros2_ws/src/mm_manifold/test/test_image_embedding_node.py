@@ -1,11 +1,17 @@
-"""The image embedding node in-process: bad images are rejected, frames are learned online, the collision map is
-latched, the model is saved and reloaded, a corrupt model file means learning again."""
+"""The image embedding node in-process: bad images, joint states, touch readings, map requests and parameter updates
+are rejected with the node still working; frames are learned online; collision maps are built for the newest frame
+after the fit and for a requested frame, stamped with it and latched; the model is saved and reloaded; a corrupt or
+mismatched model file means learning again."""
+import math
+
 import numpy as np
 from mm_common.testing import RosHarness
 from mm_msgs.msg import CollisionMap, Contact, EmbeddingState
+from mm_common.node_utils import rejected_inputs
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, JointState
+from std_msgs.msg import Header
 
 from mm_manifold.arm_evaluation import sample_exploration_joints
 from mm_manifold.image_embedding_node import ImageEmbeddingNode
@@ -32,7 +38,8 @@ def make_rig(ros, params):
     client.create_subscription(CollisionMap, 'arm/embedding/collision_map', seen['map'].append, LATCHED)
     pubs = dict(image=client.create_publisher(Image, 'arm/camera/image_raw', QOS),
                 joints=client.create_publisher(JointState, 'arm/joint_states', QOS),
-                contact=client.create_publisher(Contact, 'arm/contact', QOS))
+                contact=client.create_publisher(Contact, 'arm/contact', QOS),
+                request=client.create_publisher(Header, 'arm/embedding/map_request', QOS))
     assert ros.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), timeout=10)
     return node, pubs, seen
 
@@ -73,6 +80,7 @@ def test_learns_online_latches_the_map_saves_and_reloads(tmp_path):
             pubs['contact'].publish(touch)
             assert ros.spin_until(lambda: len(seen['state']) == k + 1, timeout=10)
         assert ros.spin_until(lambda: seen['map'], timeout=60), 'no collision map after the fit'
+        assert seen['map'][-1].header.stamp.sec == N_FRAMES - 1          # a map of the newest frame
         assert node.n_frames == N_FRAMES
         np.testing.assert_array_equal(np.array(node.model.train_contact_),
                                       [model.in_contact(q) for q in joints])       # labels paired correctly
@@ -84,14 +92,34 @@ def test_learns_online_latches_the_map_saves_and_reloads(tmp_path):
         pubs['image'].publish(image_msg(model.render(q), 1000))
         assert ros.spin_until(lambda: seen['state'][-1].model_ready, timeout=10)
         assert len(seen['state'][-1].embedding) == 3 and seen['state'][-1].training_frames == N_FRAMES
+        # a map request for a frame not yet seen is answered once that frame is in, with its stamp
+        n_maps = len(seen['map'])
+        request = Header()
+        request.stamp.sec = 1001
+        pubs['request'].publish(request)
+        ros.spin_for(0.2)
+        assert len(seen['map']) == n_maps
+        pubs['image'].publish(image_msg(model.render(joints[-1]), 1001))
+        assert ros.spin_until(lambda: len(seen['map']) > n_maps, timeout=20)
+        assert seen['map'][-1].header.stamp.sec == 1001
+        assert list(seen['map'][-1].collision) == list(m.collision)      # same view as frame N - 1: same map
     finally:
         ros.close()
-    # a new node loads the saved model and latches its map at once
+    # a new node loads the saved model and latches a map of the first frame it gets
     ros = RosHarness()
     try:
-        node, _, seen = make_rig(ros, {'model_path': str(model_path)})
-        assert node.model is not None and ros.spin_until(lambda: seen['map'], timeout=10)
-        assert list(seen['map'][-1].collision) == list(m.collision)
+        node, pubs, seen = make_rig(ros, {'model_path': str(model_path)})
+        assert node.model is not None
+        pubs['image'].publish(image_msg(model.render(joints[-1]), 5))
+        assert ros.spin_until(lambda: seen['map'], timeout=20)
+        assert seen['map'][-1].header.stamp.sec == 5 and list(seen['map'][-1].collision) == list(m.collision)
+    finally:
+        ros.close()
+    # a model for another grid is not used
+    ros = RosHarness()
+    try:
+        node, _, _ = make_rig(ros, {'model_path': str(model_path), 'grid_rows': 6})
+        assert node.model is None
     finally:
         ros.close()
 
@@ -105,5 +133,33 @@ def test_a_corrupt_model_file_means_learning_again(tmp_path):
         assert node.model is None
         ros.spin_for(0.2)
         assert not seen['map']
+    finally:
+        ros.close()
+
+
+def test_malformed_inputs_and_parameters_are_rejected_and_the_node_keeps_running():
+    ros = RosHarness()
+    try:
+        node, pubs, seen = make_rig(ros, {'image_size': 0})
+        tiny = image_msg(np.zeros((1, 1, 3), np.uint8), 1)
+        pubs['image'].publish(tiny)
+        odd = image_msg(np.zeros((40, 40, 3), np.uint8), 2)
+        odd.step = 10                                       # shorter than a row
+        pubs['image'].publish(odd)
+        assert ros.spin_until(lambda: node.images_rejected == 2)
+        for position in ([math.nan, 0.0], [1.0], []):
+            pubs['joints'].publish(JointState(position=position))
+        assert ros.spin_until(lambda: rejected_inputs(node).get('arm/joint_states', 0) == 3)
+        pubs['image'].publish(image_msg(ArmModel(random_state=0).render([-2.0, 1.0]), 4))
+        assert ros.spin_until(lambda: len(seen['state']) == 1)
+        old = Header()
+        old.stamp.sec = 1
+        pubs['request'].publish(old)                         # older than every frame kept
+        assert ros.spin_until(lambda: rejected_inputs(node).get('arm/embedding/map_request', 0) == 1)
+        for name, value in (('min_training_frames', 2000), ('max_training_frames', 100), ('random_seed', 3),
+                            ('grid_rows', 4), ('model_path', '/tmp/x.npz'), ('cell_collision_fraction', 0.0)):
+            assert not node.set_parameters([Parameter(name, value=value)])[0].successful, name
+        assert node.set_parameters([Parameter('max_training_frames', value=600)])[0].successful
+        assert node.max_training_frames == 600
     finally:
         ros.close()
