@@ -52,6 +52,31 @@ def _param_literal(value: object) -> str:
     return repr(value)
 
 
+def dds_environment(env: Mapping[str, str]) -> Dict[str, str]:
+    """`env` with the loopback-only Fast DDS profile decided for this process exactly as `./mm` decides it.
+
+    `./mm` names the profile in MM_LOCALHOST_PROFILE and, with LOCALHOST discovery and no static peers, applies it
+    under ROS_AUTOMATIC_DISCOVERY_RANGE=SYSTEM_DEFAULT (rmw_fastrtps would add a UDP transport on every interface
+    for LOCALHOST; the profile does localhost discovery itself), keeping the intent in MM_DISCOVERY_RANGE. A graph
+    started from an ./mm shell with SUBNET or ROS_STATIC_PEERS in its own `env` must not inherit the profile; a
+    profile file the caller chose is left alone.
+    """
+    out = dict(env)
+    ours = out.get('MM_LOCALHOST_PROFILE')
+    if not ours:
+        return out
+    if out.get('FASTRTPS_DEFAULT_PROFILES_FILE') == ours:
+        del out['FASTRTPS_DEFAULT_PROFILES_FILE']
+        if out.get('ROS_AUTOMATIC_DISCOVERY_RANGE') == 'SYSTEM_DEFAULT':
+            out['ROS_AUTOMATIC_DISCOVERY_RANGE'] = out.get('MM_DISCOVERY_RANGE', 'SYSTEM_DEFAULT')
+    out['MM_DISCOVERY_RANGE'] = out.get('ROS_AUTOMATIC_DISCOVERY_RANGE', '')
+    localhost = out.get('ROS_AUTOMATIC_DISCOVERY_RANGE') == 'LOCALHOST' and not out.get('ROS_STATIC_PEERS')
+    if localhost and not out.get('FASTRTPS_DEFAULT_PROFILES_FILE') and not out.get('FASTDDS_DEFAULT_PROFILES_FILE'):
+        out['FASTRTPS_DEFAULT_PROFILES_FILE'] = ours
+        out['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SYSTEM_DEFAULT'
+    return out
+
+
 def _die_with_parent() -> None:
     """Runs in the child before exec: Linux sends it SIGTERM when the process that started it dies, so a crashed or
     killed test/demo never leaves nodes behind that keep talking on the domain (the recorder still finalises)."""
@@ -96,7 +121,7 @@ class ProcessGraph:
         else:
             out = subprocess.DEVNULL
         # Own process group, so a SIGINT aimed at this graph never reaches the caller (pytest, make).
-        node.process = subprocess.Popen(cmd, env=self.env, stdout=out, stderr=subprocess.STDOUT,
+        node.process = subprocess.Popen(cmd, env=dds_environment(self.env), stdout=out, stderr=subprocess.STDOUT,
                                         stdin=subprocess.DEVNULL, start_new_session=True,
                                         preexec_fn=_die_with_parent if os.name == 'posix' else None)
         if out is not subprocess.DEVNULL:
