@@ -77,7 +77,7 @@ class Recorder(Node):
         max_bag_size = declare(self, 'max_bag_size', 0, 'Split into a new .mcap file past this many bytes (0 = never)',
                                min_value=0, max_value=2**62, read_only=True)
         chunk_size = declare(self, 'chunk_size', 1024 * 1024,
-                             'MCAP chunk size in bytes: a chunk is committed to disk when it reaches this size',
+                             'MCAP chunk size in bytes: a chunk is written to the file when it reaches this size',
                              min_value=0, max_value=2**31, read_only=True)
         flush_period = declare(self, 'flush_period', 0.5,
                                'Seconds after which a chunk is written to the file even if not full: '

@@ -784,6 +784,7 @@ class McapScan:
         self.complete = False
         self.error = ''
         self.orphans = 0   # messages whose channel record was lost
+        self.compression = 'none'   # of the chunks read (a rebuilt file keeps it)
 
     @property
     def message_count(self) -> int:
@@ -798,7 +799,10 @@ class McapScan:
             reader = StreamReader(stream, emit_chunks=True, record_size_limit=self.size)
             try:
                 for record in reader.records:
-                    inner = breakup_chunk(record, validate_crc=True) if isinstance(record, Chunk) else [record]
+                    inner = [record]
+                    if isinstance(record, Chunk):
+                        inner = breakup_chunk(record, validate_crc=True)
+                        self.compression = record.compression or 'none'
                     for item in inner:
                         if isinstance(item, Header):
                             self.profile = item.profile
@@ -1022,6 +1026,7 @@ def _rebuild(path: Path, chunk_size: int, report: List[str]) -> FileSummary:
             out.add_message(channel_ids[channel.id], message.log_time, message.publish_time, message.data,
                             message.sequence)
             if out.pending_bytes >= chunk_size:
+                out.compression = scan.compression if scan.compression in _COMPRESSORS else 'none'
                 out.commit()
         for channel in scan.channels.values():   # channels without messages still describe the recording
             if channel.id not in channel_ids:
@@ -1030,6 +1035,7 @@ def _rebuild(path: Path, chunk_size: int, report: List[str]) -> FileSummary:
                     schema_ids[schema.id] = out.add_schema(schema.name, schema.encoding, schema.data)
                 channel_ids[channel.id] = out.add_channel(channel.topic, channel.message_encoding,
                                                           schema_ids.get(channel.schema_id, 0), channel.metadata)
+        out.compression = scan.compression if scan.compression in _COMPRESSORS else 'none'
         out.commit()
         if out.finish() != 'summary':
             raise OSError(errno.ENOSPC, 'no room for the summary')

@@ -168,9 +168,10 @@ def test_chunks_are_committed_after_flush_period_without_waiting_for_size(tmp_pa
     assert 'without a summary' in McapScan(tmp_path / 'crash' / 'crash_0.mcap').scan().error
 
 
-def test_reindex_recovers_the_intact_prefix_at_every_cut(tmp_path):
+@pytest.mark.parametrize('compression', ['none', 'zstd'])
+def test_reindex_recovers_the_intact_prefix_at_every_cut(tmp_path, compression):
     clock = FakeClock()
-    writer = BagWriter(tmp_path / 'bag', clock=clock, flush_period=0.25, chunk_size=1 << 30)
+    writer = BagWriter(tmp_path / 'bag', clock=clock, flush_period=0.25, chunk_size=1 << 30, compression=compression)
     writer.add_topic('/text', 'std_msgs/msg/String', [QosSummary(reliability=2)], 'RIHS01_t')
     text_messages(writer, clock, 40)
     writer.close()
@@ -195,6 +196,7 @@ def test_reindex_recovers_the_intact_prefix_at_every_cut(tmp_path):
             with open(bag / f'cut{cut}_0.mcap', 'rb') as f:      # a complete, indexed file for the standard reader
                 reader = make_reader(f)
                 assert reader.get_summary().statistics.message_count == len(indices)
+                assert {c.compression for c in reader.get_summary().chunk_indexes} <= {compression.replace('none', '')}
                 assert len(list(reader.iter_messages())) == len(indices)
     assert recovered == sorted(recovered) and recovered[-1] == 40   # a cut in the summary loses no message
 
