@@ -449,7 +449,7 @@ def _bag_file_name(bag_name: str, index: int) -> str:
 
 def bag_owned_files(directory: os.PathLike) -> List[Path]:
     """The files of the bag in `directory`: metadata.yaml, the files it lists (inside the directory only),
-    `<name>_<n>.mcap` storage files, the recorder's disk reserve and leftover metadata temp files.
+    `<name>_<n>.mcap` storage files, the recorder's disk reserve and leftover temp files of metadata.yaml / reindex.
     Anything else in the directory is not the bag's and is never touched."""
     directory = Path(directory)
     owned = set()
@@ -463,7 +463,8 @@ def bag_owned_files(directory: os.PathLike) -> List[Path]:
     pattern = re.compile(re.escape(directory.name) + r'_\d+\.mcap')
     for child in directory.iterdir():
         if pattern.fullmatch(child.name) or child.name == RESERVE_NAME or \
-                (child.name.startswith('.metadata.') and child.name.endswith('.yaml')):
+                (child.name.startswith('.metadata.') and child.name.endswith('.yaml')) or \
+                (child.name.startswith('.') and child.name.endswith('.mcap.reindex')):
             owned.add(child)
     return sorted(p for p in owned if p.is_file())
 
