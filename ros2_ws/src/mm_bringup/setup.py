@@ -27,6 +27,7 @@ setup(
             'player = mm_bringup.player_node:main',
             'topic = mm_bringup.topic_tool:main',
             'bag = mm_bringup.bag_tool:main',
+            'ros2 = mm_bringup.ros2_cli:main',
             'demo = mm_bringup.demo:main'
         ],
     },
