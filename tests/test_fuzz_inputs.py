@@ -594,3 +594,156 @@ def test_node_survives_malformed_inputs(node, tmp_path):
     print(f'{node}: {fuzzer.sent} inputs on {sorted(fuzzer.topics)} + {sorted(fuzzer.services)} + parameters, '
           f'{fuzzer.restarts} restart(s)')
     assert not failures, report(node, failures, fuzzer.sent)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Recorder and player: the recorder's inputs are whatever is published; the player's are bags and parameters.
+# ---------------------------------------------------------------------------------------------------------------------
+FUZZ_TOPICS = {'/fuzz/range': _ranges(0)[1][1], '/fuzz/image': _image(0), '/fuzz/state': _manifold_state(0),
+               '/fuzz/model': SensorManifoldModel(header=_header(0))}
+VALID_TOPIC = '/fuzz/valid'
+
+
+def _record(ros: RosHarness, client, graph: ProcessGraph, bag: Path, fuzz: bool) -> Tuple[NodeProcess, int, list]:
+    """Run a recorder into `bag`; optionally fuzz it; publish 5 valid messages; stop it. Returns (process, exit
+    status, failures)."""
+    failures: List[Failure] = []
+    recorder = graph.start('mm_bringup', 'recorder', {'output': str(bag), 'discovery_period': 0.05})
+    qos = QoSProfile(depth=2000, reliability=RELIABLE)
+    topics = dict(FUZZ_TOPICS, **{VALID_TOPIC: Float64MultiArray(data=[1.0, 2.0])}) if fuzz else \
+        {VALID_TOPIC: Float64MultiArray(data=[1.0, 2.0])}
+    pubs = {t: client.create_publisher(type(m), t, qos) for t, m in topics.items()}
+    # Two types on one topic name (from two participants: DDS refuses both in one): the recorder must go on.
+    other = RosHarness() if fuzz else None
+    conflict = [client.create_publisher(Float64MultiArray, '/fuzz/conflict', qos),
+                other.node('fuzz_conflicting_type').create_publisher(Bool, '/fuzz/conflict', qos)] if fuzz else []
+
+    def subscribed() -> bool:
+        return all(any(i.node_name == 'recorder' for i in client.get_subscriptions_info_by_topic(t)) for t in pubs)
+    if not ros.spin_until(lambda: subscribed() or recorder.process.poll() is not None, 30.0):
+        failures.append(Failure('recorder', 'start', 'never subscribed to the published topics',
+                                graph.log_tail(recorder)))
+    sent = 0
+    if fuzz:
+        for topic, template in FUZZ_TOPICS.items():
+            for what, msg in message_variants(template):
+                pubs[topic].publish(msg)
+                sent += 1
+                ros.spin_for(0.002)
+                if recorder.process.poll() is not None:
+                    failures.append(Failure(topic, what, f'recorder exited with {recorder.process.returncode}',
+                                            graph.log_tail(recorder)))
+                    return recorder, recorder.process.returncode, failures
+        conflict[0].publish(Float64MultiArray(data=[1.0]))
+        conflict[1].publish(Bool(data=True))
+    for i in range(5):
+        pubs[VALID_TOPIC].publish(Float64MultiArray(data=[float(i), 2.0]))
+    ros.spin_for(1.0)
+    rc = graph.stop(recorder)
+    if other is not None:
+        other.close()
+    return recorder, rc, failures
+
+
+def test_recorder_survives_malformed_messages(tmp_path):
+    """Hostile messages on many topics (and two types on one topic) are recorded or skipped; the valid messages are
+    in a readable bag after SIGINT."""
+    from mm_common.rosbag import iter_messages
+    ros = RosHarness()
+    client = ros.node('fuzz_recorder_driver')
+    graph = ProcessGraph(log_dir=tmp_path / 'logs')
+    try:
+        recorder, rc, failures = _record(ros, client, graph, tmp_path / 'bag', fuzz=True)
+        log = recorder.log_path.read_text(errors='replace')
+        if rc != 0:
+            failures.append(Failure('SIGINT', 'after fuzzing', f'exit status {rc}', log[-3000:]))
+        if 'Traceback' in log:
+            failures.append(Failure('log', 'after fuzzing', 'traceback in the log', log[-3000:]))
+        try:
+            valid = [m for m in iter_messages(tmp_path / 'bag', [VALID_TOPIC])]
+            if len(valid) != 5:
+                failures.append(Failure(VALID_TOPIC, 'valid messages', f'{len(valid)} of 5 in the bag'))
+        except Exception as exc:  # noqa: BLE001 - any failure to read the bag is the finding
+            failures.append(Failure('bag', 'read after fuzzing', f'{type(exc).__name__}: {exc}'))
+    finally:
+        graph.stop_all()
+        ros.close()
+    assert not failures, report('recorder', failures, 0)
+
+
+def _broken_copies(valid: Path, root: Path) -> Dict[str, Path]:
+    """Copies of a valid bag, each damaged in one way."""
+    import shutil
+    mcap = next(valid.glob('*.mcap'))
+    out = {}
+
+    def copy_as(name: str) -> Path:
+        target = root / name
+        shutil.copytree(valid, target)
+        return target
+    out['mcap empty (0 bytes)'] = copy_as('empty')
+    (out['mcap empty (0 bytes)'] / mcap.name).write_bytes(b'')
+    out['mcap truncated to half'] = copy_as('truncated')
+    (out['mcap truncated to half'] / mcap.name).write_bytes(mcap.read_bytes()[:mcap.stat().st_size // 2])
+    out['mcap random bytes'] = copy_as('garbage')
+    (out['mcap random bytes'] / mcap.name).write_bytes(os.urandom(mcap.stat().st_size))
+    out['metadata.yaml missing'] = copy_as('no_metadata')
+    (out['metadata.yaml missing'] / 'metadata.yaml').unlink()
+    out['metadata.yaml not YAML'] = copy_as('bad_metadata')
+    (out['metadata.yaml not YAML'] / 'metadata.yaml').write_text('rosbag2_bagfile_information: {{{\n')
+    out['metadata.yaml a list'] = copy_as('list_metadata')
+    (out['metadata.yaml a list'] / 'metadata.yaml').write_text('- 1\n- 2\n')
+    escape = copy_as('path_escape')
+    text = (escape / 'metadata.yaml').read_text().replace(mcap.name, '../../../../etc/hostname')
+    (escape / 'metadata.yaml').write_text(text)
+    out['relative_file_paths outside the bag'] = escape
+    out['bag directory missing'] = root / 'does_not_exist'
+    return out
+
+
+def _play(graph: ProcessGraph, bag: Path, parameters: Optional[dict] = None, timeout: float = 60.0):
+    player = graph.start('mm_bringup', 'player', {'bag': str(bag), 'rate': 0.0, 'start_delay': 0.3,
+                                                   **(parameters or {})})
+    try:
+        player.process.wait(timeout)
+    except subprocess.TimeoutExpired:
+        graph.stop(player)
+        return None, player.log_path.read_text(errors='replace')
+    return player.process.returncode, player.log_path.read_text(errors='replace')
+
+
+def test_player_rejects_broken_bags_and_bad_parameters_then_plays_a_valid_bag(tmp_path):
+    """Every damaged bag or bad parameter ends the player with a non-zero status and a message, never a traceback
+    or a hang; the valid bag then plays completely."""
+    ros = RosHarness()
+    client = ros.node('fuzz_player_driver')
+    graph = ProcessGraph(log_dir=tmp_path / 'logs')
+    failures: List[Failure] = []
+    try:
+        valid = tmp_path / 'valid'
+        _, rc, recorded = _record(ros, client, graph, valid, fuzz=False)
+        assert rc == 0 and not recorded, recorded
+        cases = [(what, bag, {}) for what, bag in _broken_copies(valid, tmp_path / 'broken').items()]
+        cases += [(f'parameter {name}={value}', valid, {name: value}) for name, value in
+                  (('rate', math.nan), ('rate', -1.0), ('rate', 1e308), ('start_delay', math.inf),
+                   ('topics', ['(unclosed']))]
+        for what, bag, parameters in cases:
+            rc, log = _play(graph, bag, parameters)
+            if rc is None:
+                failures.append(Failure('player', what, 'still running after 60 s', log[-1500:]))
+            elif 'Traceback' in log:
+                failures.append(Failure('player', what, f'traceback (exit status {rc})', log[-1500:]))
+            elif rc == 0 and not parameters:
+                failures.append(Failure('player', what, 'exit status 0 for a bag it could not play', log[-1500:]))
+        received: list = []
+        client.create_subscription(Float64MultiArray, VALID_TOPIC, received.append,
+                                   QoSProfile(depth=100, reliability=RELIABLE))
+        rc, log = _play(graph, valid, {'start_delay': 1.0})
+        ros.spin_until(lambda: len(received) >= 5, 10.0)
+        if rc != 0 or len(received) != 5:
+            failures.append(Failure('player', 'valid bag', f'exit status {rc}, {len(received)} of 5 received',
+                                    log[-1500:]))
+    finally:
+        graph.stop_all()
+        ros.close()
+    assert not failures, report('player', failures, 0)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import signal
+import sys
 import threading
 import time
 import weakref
@@ -11,6 +12,7 @@ from typing import Any, Callable, Dict, Iterable, Mapping, Optional, Sequence, T
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
@@ -27,6 +29,8 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
     building its wait set (`RCLError: failed to initialize wait set: the given context is not valid`, exit 1).
     Here the handlers only set a flag: the executor notices it within `_STOP_POLL_SEC`, returns, and the node is
     destroyed before the context is shut down. Further signals during clean-up are ignored (SIGKILL still works).
+    A start-up configuration the node refuses (a parameter out of its range, of the wrong type, or a ValueError from
+    the constructor) ends the process with one error line and exit status 2 instead of a traceback.
     """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
@@ -34,10 +38,15 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
         signal.signal(sig, lambda *_: stop.set())
     node = None
     executor = None
+    refused = ''
     try:
         if stop.is_set():
             return
-        node = node_factory()
+        try:
+            node = node_factory()
+        except (ParameterException, ValueError) as exc:
+            refused = f'{getattr(node_factory, "__name__", "node")}: cannot start: {exc}'
+            return
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         while not stop.is_set() and rclpy.ok():
@@ -53,6 +62,9 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        if refused:
+            print(refused, file=sys.stderr)
+            raise SystemExit(2)
 
 
 def declare(node: Node, name: str, default: Any, description: str, *,

@@ -123,3 +123,27 @@ def test_run_node_exits_cleanly_on_signals_mid_spin(sig, tmp_path):
         if proc.returncode != 0 or 'Traceback' in err:
             failures.append((attempt, proc.returncode, err[-800:]))
     assert not failures, failures
+
+
+_STRICT_NODE = r'''
+import sys
+from rclpy.node import Node
+from mm_common.node_utils import declare, run_node
+
+class Strict(Node):
+    def __init__(self):
+        super().__init__('strict_parameters')
+        declare(self, 'rate', 1.0, 'a rate', min_value=0.0, max_value=10.0)
+
+run_node(Strict, sys.argv)
+'''
+
+
+@pytest.mark.parametrize('value', ['nan', '-1.0', "'text'"])
+def test_run_node_refuses_a_bad_start_up_parameter_in_one_line(value, tmp_path):
+    script = tmp_path / 'strict.py'
+    script.write_text(_STRICT_NODE)
+    proc = subprocess.run([sys.executable, str(script), '--ros-args', '-p', f'rate:={value}'], capture_output=True,
+                          text=True, timeout=30)
+    assert proc.returncode == 2, proc.stderr
+    assert 'Traceback' not in proc.stderr and 'cannot start' in proc.stderr and 'rate' in proc.stderr
