@@ -4,8 +4,8 @@ builds the collision map the planner needs for the object where the current fram
     ./mm run mm_manifold image_embedding --ros-args -p use_sim_time:=true -p min_training_frames:=500
 
 Subscribes only to what the robot senses: `arm/camera/image_raw` (sensor_msgs/Image rgb8/bgr8/mono8),
-`arm/joint_states` and `arm/contact` (mm_msgs/Contact, the touch sensor on the hand: the "contact" label, stamped
-with its frame), plus `arm/embedding/map_request` (std_msgs/Header from the planner: the stamp of the frame a map is
+`arm/joint_states` and `arm/contact` (mm_msgs/Contact, the touch sensor on the hand, stamped with its frame: its
+reading in the frame's pose is the frame's "contact" label), plus `arm/embedding/map_request` (std_msgs/Header from the planner: the stamp of the frame a map is
 needed of). Never ground truth.
 
 Every image: SIFT keypoints (mm_manifold.keypoints). A frame whose joint state and touch reading of the same stamp
@@ -259,7 +259,7 @@ class ImageEmbeddingNode(Node):
         stamp = stamp_ns(msg.header)
         entry = self._entry(stamp)
         if entry is not None:
-            entry['contact'] = bool(msg.in_contact)
+            entry['contact'] = bool(msg.in_contact_at_frame)      # the label of what the image shows
             self._complete(stamp)
 
     def _on_map_request(self, msg: Header) -> None:

@@ -75,7 +75,7 @@ def test_learns_online_latches_the_map_saves_and_reloads(tmp_path):
             js = JointState(name=['shoulder_roll', 'shoulder_pitch'], position=[float(v) for v in q])
             js.header.stamp.sec = k
             pubs['joints'].publish(js)
-            touch = Contact(in_contact=model.in_contact(q))
+            touch = Contact(in_contact=model.in_contact(q), in_contact_at_frame=model.in_contact(q))
             touch.header.stamp.sec = k
             pubs['contact'].publish(touch)
             assert ros.spin_until(lambda: len(seen['state']) == k + 1, timeout=10)

@@ -49,6 +49,9 @@ LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durabi
 # Map requests: RELIABLE (the planner waits for the answer), volatile (a request is about the present frame only).
 REQUEST_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 MAX_PENDING_FRAMES = 200
+# A frame stamped further ahead of the node's clock than this is rejected (a bogus stamp would otherwise make every
+# later, valid frame look old); with sim time the clock trails the simulator's frames by one /clock message at most.
+FUTURE_MARGIN_NS = 60 * 1_000_000_000
 
 
 def stamp_ns(stamp: Time) -> int:
@@ -168,6 +171,18 @@ class DpPlannerNode(Node):
     # --- inputs -----------------------------------------------------------------------------------------------
     def _frame_stamp(self, header, source: str) -> Optional[int]:
         stamp = stamp_ns(header.stamp)
+        now = self.get_clock().now().nanoseconds
+        if self.acted_stamp is not None and now + FUTURE_MARGIN_NS < self.acted_stamp:
+            # the clock itself went back (the simulator restarted): the loop starts again from its frames
+            self.get_logger().warn('the clock went back before the last frame acted on: restarting the loop')
+            self.acted_stamp = self.latest_stamp = None
+            self.joints.clear()
+            self.contacts.clear()
+            self.frame_wall.clear()
+        if stamp > now + FUTURE_MARGIN_NS:
+            reject_input(self, source, f'stamp {stamp * 1e-9:.3f} s is more than {FUTURE_MARGIN_NS * 1e-9:.0f} s '
+                                       f'ahead of the clock ({now * 1e-9:.3f} s)')
+            return None
         if self.acted_stamp is not None and stamp < self.acted_stamp:
             reject_input(self, source, f'stamp {stamp} ns is older than the frame already acted on '
                                        f'({self.acted_stamp} ns)')
@@ -231,6 +246,9 @@ class DpPlannerNode(Node):
 
     def _on_map(self, msg: CollisionMap) -> None:
         problem = self.map_problem(msg)
+        now = self.get_clock().now().nanoseconds
+        if not problem and stamp_ns(msg.header.stamp) > now + FUTURE_MARGIN_NS:
+            problem = f'map stamped {stamp_ns(msg.header.stamp) * 1e-9:.3f} s, ahead of the clock ({now * 1e-9:.3f} s)'
         if problem:
             reject_input(self, 'arm/embedding/collision_map', problem)
             return
