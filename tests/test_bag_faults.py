@@ -155,6 +155,9 @@ def test_full_disk_is_reported_at_once_and_the_bag_stays_readable(ros, tmp_path)
     ({'topics': ['/ok', '[unclosed']}, 'not a valid regular expression'),
     ({'compression': 'gzip'}, 'compression must be none, zstd or lz4'),
     ({'overwrite': False}, 'exists (pass overwrite'),
+    ({'max_bag_size': -5}, 'max_bag_size out of range'),
+    ({'flush_period': 0.0}, 'flush_period out of range'),
+    ({'chunk_size': 'big'}, "'chunk_size' to 'big'"),
 ])
 def test_bad_start_up_parameters_are_one_error_line(tmp_path, parameters, problem):
     (tmp_path / 'bag').mkdir()
@@ -174,6 +177,15 @@ def _numbered_bag(path, n=300, step_ns=10_000_000):
         writer.write(TOPIC, serialize_message(String(data=f'{i}|')), 10**9 + i * step_ns)
     writer.close()
     return path
+
+
+def test_player_bad_start_up_parameter_is_one_error_line(tmp_path):
+    bag = _numbered_bag(tmp_path / 'bag', n=3)
+    with ProcessGraph(log_dir=tmp_path / 'logs') as graph:
+        player = graph.start('mm_bringup', 'player', {'bag': str(bag), 'rate': -1.0})
+        assert player.process.wait(timeout=30) == 1
+        log = graph.log_tail(player)
+    assert 'cannot play' in log and 'rate out of range' in log and 'Traceback' not in log, log
 
 
 def test_player_exits_1_when_it_cannot_play_everything(tmp_path):

@@ -19,6 +19,7 @@ from typing import Dict, List, Optional
 import rclpy
 from mm_common.node_utils import declare
 from rclpy.duration import Duration
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from mm_common.rosbag import BagError, adapt_offered_qos, iter_messages, read_metadata, topic_qos
 from rclpy.node import Node
@@ -130,7 +131,7 @@ def main(args=None):
         ok = node.run()
     except (KeyboardInterrupt, ExternalShutdownException):
         ok = True
-    except BagError as exc:
+    except (BagError, ParameterException) as exc:
         rclpy.logging.get_logger('player').error(f'cannot play: {exc}')
     finally:
         if node is not None:

@@ -27,6 +27,7 @@ from typing import Dict, List
 import rclpy
 from mm_common.node_utils import declare, reject_non_finite
 from mm_common.rosbag import BagError, BagWriter, QosSummary, adapt_offered_qos
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
@@ -196,7 +197,8 @@ def main(args=None):
 
     With rclpy's default handlers the context is shut down inside the signal handler and messages still queued in
     the subscriptions would be lost; rosbag2 likewise flushes before it exits. A closed terminal (SIGHUP) is a stop
-    request too. A start-up problem (bad regex, existing directory) is one error line and exit status 1.
+    request too. A start-up problem (bad regex or parameter value, existing directory) is one error line and exit
+    status 1.
     """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
@@ -215,7 +217,7 @@ def main(args=None):
             executor.spin_once(timeout_sec=0.01)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (BagError, RecorderConfigError) as exc:
+    except (BagError, RecorderConfigError, ParameterException) as exc:
         rclpy.logging.get_logger('recorder').error(f'cannot record: {exc}')
         status = 1
     finally:
