@@ -5,8 +5,8 @@ builds the collision map the planner needs for the object where the current fram
 
 Subscribes only to what the robot senses: `arm/camera/image_raw` (sensor_msgs/Image rgb8/bgr8/mono8),
 `arm/joint_states` and `arm/contact` (mm_msgs/Contact, the touch sensor on the hand, stamped with its frame: its
-reading in the frame's pose is the frame's "contact" label), plus `arm/embedding/map_request` (std_msgs/Header from the planner: the stamp of the frame a map is
-needed of). Never ground truth.
+reading in the frame's pose is the frame's "contact" label), plus `arm/embedding/map_request` (std_msgs/Header from
+the planner: the stamp of the frame a map is needed of). Never ground truth.
 
 Every image: SIFT keypoints (mm_manifold.keypoints). A frame whose joint state and touch reading of the same stamp
 have arrived joins the training set. When `min_training_frames` frames are in, a background thread fits

@@ -14,7 +14,8 @@ from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Header
 
 from mm_manifold.arm_evaluation import sample_exploration_joints
-from mm_manifold.image_embedding_node import ImageEmbeddingNode
+from mm_manifold.arm_learning import ArmStateLearner
+from mm_manifold.image_embedding_node import ImageEmbeddingNode, model_score
 from mm_sim.arm_model import ArmModel
 
 QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
@@ -92,6 +93,17 @@ def test_learns_online_latches_the_map_saves_and_reloads(tmp_path):
         pubs['image'].publish(image_msg(model.render(q), 1000))
         assert ros.spin_until(lambda: seen['state'][-1].model_ready, timeout=10)
         assert len(seen['state'][-1].embedding) == 3 and seen['state'][-1].training_frames == N_FRAMES
+        # a refit that scores worse in cross-validation (labels shuffled) does not replace the live model
+        live = node.model
+        n = 60
+        labels = np.random.default_rng(0).permutation(node.frames['contact'][:n])
+        worse = ArmStateLearner(random_state=0, **node.learner_params).fit(
+            node.frames['kp'][:n], np.array(node.frames['joints'][:n]), labels)
+        assert model_score(worse) < model_score(live)
+        with node._lock:
+            node._fit_result = (worse, '')
+        node._install_fitted()
+        assert node.model is live and node.fits_discarded == 1
         # a map request for a frame not yet seen is answered once that frame is in, with its stamp
         n_maps = len(seen['map'])
         request = Header()
