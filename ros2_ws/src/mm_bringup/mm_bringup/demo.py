@@ -6,8 +6,9 @@
 2. Section 2: wheeled_sim (lockstep) + sensor_manifold + switching_controller. The robot explores, the manifold
    node learns the grid, Jacobians and virtual sensor space, then the paper's task runs: start facing the wall
    perpendicularly at 1 m, goal shown as the sensor-2 reading of the pose 0.25 m from the wall, parallel to it.
-3. Section 3: arm_sim + image_embedding + dp_planner: random arm exploration, online LLE, then a planned reach with
-   the object in the way (mm_bringup.arm_demo).
+3. Section 3: arm_sim + image_embedding + dp_planner: random arm exploration while the object moves, online LLE
+   (kept), then the object is re-placed where the model never saw it and in the way, and the planner plans on a map
+   of that frame before moving (mm_bringup.arm_demo).
 4. The recorder is stopped with SIGINT (it finalises the MCAP summary and metadata.yaml); the bag is summarised,
    and the Section 2 figures (Figs. 7-9) are drawn from what the graph did into `--figures`.
 """
@@ -104,7 +105,8 @@ def main(argv=None) -> int:
         try:
             results['wall'] = wall_experiment(graph, Path(tmp) / 'wall', args.exploration_steps, Path(args.figures))
             if not args.skip_arm:
-                log('arm: exploring, learning the image embedding, then planning around the object')
+                log('arm: exploring with the object moving, learning the image embedding, then planning around '
+                    're-placed objects')
                 results['arm'] = run_arm_demo(graph, log=log, exploration_steps=args.arm_exploration_steps,
                                               timeout_s=900.0)
         finally:
