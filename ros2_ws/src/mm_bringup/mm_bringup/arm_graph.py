@@ -220,7 +220,7 @@ def run_placement(driver: ArmGraphDriver, scene, shape, seed: int, timeout: floa
         seed=seed, object_position=position.round(2).tolist(), start_cell=list(start), goal_cell=list(goal),
         goal=goal_q.round(4).tolist(), truth_blocked_cells=int(blocked.sum()), reached=reached,
         contact=bool(contact_frames), success=reached and not contact_frames, outcome=final.phase_name,
-        detail=final.detail, plan=plan_detail, goal_stamp_matched=True,
+        detail=final.detail, plan=plan_detail, goal_stamp=goal_stamp,
         contact_frames=len(contact_frames), contact_parts=sorted({p for t in contact_frames for p in t.contact_parts}),
         min_link_clearance_px=float(min(t.min_link_clearance for t in moved)) if moved else None,
         min_hand_object_distance_px=float(min(t.min_hand_object_distance for t in moved)) if moved else None,
