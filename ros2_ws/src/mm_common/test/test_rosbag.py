@@ -1,4 +1,10 @@
-"""rosbag2 layout rules: schema text, QoS YAML, metadata, splitting, corrupt input."""
+"""rosbag2 layout rules: schema text, QoS YAML, metadata, splitting, corrupt input; crash safety: time-based chunk
+commits, recovery of cut files (reindex), a full disk, overwrite, malformed metadata and what the files really hold."""
+import errno
+import io
+import os
+import shutil
+
 import yaml
 import pytest
 from mcap.reader import make_reader
@@ -7,8 +13,9 @@ from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Range
 from std_msgs.msg import String
 
-from mm_common.rosbag import (SCHEMA_SEPARATOR, BagError, BagWriter, QosSummary, adapt_offered_qos, iter_messages,
-                              parse_qos_profiles, qos_profiles_yaml, read_metadata, schema_text)
+from mm_common.rosbag import (SCHEMA_SEPARATOR, BagDiskFull, BagError, BagWriter, McapScan, QosSummary,
+                              adapt_offered_qos, bag_owned_files, iter_messages, parse_qos_profiles, qos_profiles_yaml,
+                              read_metadata, reindex, schema_text, summarize_file)
 
 
 def test_schema_text_appends_dependencies_like_rosbag2():
@@ -114,13 +121,6 @@ def test_corrupt_bags_give_clear_errors(tmp_path):
 
 
 # --- crash safety, recovery and honest reading ----------------------------------------------------------------
-import errno  # noqa: E402
-import io  # noqa: E402
-import os  # noqa: E402
-import shutil  # noqa: E402
-
-from mm_common.rosbag import (BagDiskFull, McapScan, bag_owned_files, reindex,  # noqa: E402
-                              summarize_file)
 
 
 class FakeClock:
