@@ -701,12 +701,12 @@ def _broken_copies(valid: Path, root: Path) -> Dict[str, Path]:
     return out
 
 
-def _play(graph: ProcessGraph, bag: Path, parameters: Optional[dict] = None, timeout: float = 60.0):
+def _play(ros: RosHarness, graph: ProcessGraph, bag: Path, parameters: Optional[dict] = None,
+          timeout: float = 60.0):
+    """Run the player to its end (spinning, so what it plays is received); (exit status or None if hung, log)."""
     player = graph.start('mm_bringup', 'player', {'bag': str(bag), 'rate': 0.0, 'start_delay': 0.3,
                                                    **(parameters or {})})
-    try:
-        player.process.wait(timeout)
-    except subprocess.TimeoutExpired:
+    if not ros.spin_until(lambda: player.process.poll() is not None, timeout):
         graph.stop(player)
         return None, player.log_path.read_text(errors='replace')
     return player.process.returncode, player.log_path.read_text(errors='replace')
@@ -728,7 +728,7 @@ def test_player_rejects_broken_bags_and_bad_parameters_then_plays_a_valid_bag(tm
                   (('rate', math.nan), ('rate', -1.0), ('rate', 1e308), ('start_delay', math.inf),
                    ('topics', ['(unclosed']))]
         for what, bag, parameters in cases:
-            rc, log = _play(graph, bag, parameters)
+            rc, log = _play(ros, graph, bag, parameters)
             if rc is None:
                 failures.append(Failure('player', what, 'still running after 60 s', log[-1500:]))
             elif 'Traceback' in log:
@@ -738,7 +738,7 @@ def test_player_rejects_broken_bags_and_bad_parameters_then_plays_a_valid_bag(tm
         received: list = []
         client.create_subscription(Float64MultiArray, VALID_TOPIC, received.append,
                                    QoSProfile(depth=100, reliability=RELIABLE))
-        rc, log = _play(graph, valid, {'start_delay': 1.0})
+        rc, log = _play(ros, graph, valid, {'start_delay': 3.0})
         ros.spin_until(lambda: len(received) >= 5, 10.0)
         if rc != 0 or len(received) != 5:
             failures.append(Failure('player', 'valid bag', f'exit status {rc}, {len(received)} of 5 received',
