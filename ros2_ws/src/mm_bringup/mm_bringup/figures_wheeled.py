@@ -351,7 +351,6 @@ def main(argv=None) -> int:
 
     from mm_bringup.wall_experiment import PAPER_START, explore, run_episode, sensor2_goal_reading, success
     from mm_manifold.sensor_manifold import SensorManifoldModel, group_in_range
-    from mm_planner.switching_controller import SwitchingController
     from mm_sim.wheeled_model import WheeledRobot
 
     out = Path(args.output)
@@ -368,8 +367,7 @@ def main(argv=None) -> int:
 
     goal_reading = sensor2_goal_reading(robot, tuple(args.goal))
     _, goal_coordinates, _ = model.virtual_.goal_route(goal_reading)
-    episode = run_episode(robot, model, PAPER_START, goal_reading,
-                          controller=SwitchingController(dt, tolerance=args.tolerance), dt=dt)
+    episode = run_episode(robot, model, PAPER_START, goal_reading, tolerance=args.tolerance, dt=dt)
     ok, error = success(robot, episode, goal_reading, args.tolerance)
     R = np.array(episode.readings)
     print(f'[figures_wheeled] episode: {len(episode.poses)} steps, reached={episode.reached}, success={ok}, '

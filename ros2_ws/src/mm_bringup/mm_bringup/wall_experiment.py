@@ -1,5 +1,7 @@
 """Section 2 experiment without ROS: exploration, learning and reaching episodes in a closed loop with the simulator
-model. Used to test the algorithms end to end and to draw the figures; the benchmark runs the same through the graph.
+model. Used to test the algorithms end to end and to draw the figures; the benchmark runs the same through the graph. The
+robot's behaviour is mm_planner.wall_agent.WallAgent, the class the switching_controller node drives, and the model
+reaches it through the same message (mm_manifold.model_message -> mm_planner.wall_model).
 
 Evaluation-side code: it may use the simulator's ground truth (poses) to score and plot, never to control.
 """
@@ -11,9 +13,12 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 
+from mm_manifold.model_message import model_to_msg
 from mm_manifold.sensor_manifold import SENSOR2, SensorManifoldModel, StateTracker
-from mm_planner.exploration import RandomExplorer
-from mm_planner.switching_controller import SPACE_NONE, SPACE_SENSOR2, SwitchingController
+from mm_msgs.msg import ControllerStatus
+from mm_planner.switching_controller import SPACE_SENSOR2
+from mm_planner.wall_agent import Goal, Observation, WallAgent
+from mm_planner.wall_model import WallModel
 from mm_sim.wheeled_model import WheeledRobot, wall_relative_state
 
 PAPER_START = (0.0, 1.0, -math.pi / 2)          # facing the wall perpendicularly at 1 m
@@ -28,20 +33,35 @@ class ExplorationLog:
     poses: np.ndarray
 
 
+def model_message(robot: WheeledRobot, model: SensorManifoldModel):
+    """The learned model as the learner publishes it (sensor-2 range from the robot's sensors, as the learner takes
+    it from their Range messages)."""
+    limits = [robot.sensors[i] for i in SENSOR2]
+    return model_to_msg(model, [max(s.min_range for s in limits), min(s.max_range for s in limits)])
+
+
+def agent_model(robot: WheeledRobot, model: SensorManifoldModel) -> WallModel:
+    """The learned model as the controller gets it: through the model message."""
+    return WallModel.from_msg(model_message(robot, model))
+
+
 def explore(robot: WheeledRobot, steps: int, start=PAPER_START, random_state: int = 0,
-            explorer: Optional[RandomExplorer] = None, dt: float = 0.05) -> ExplorationLog:
-    explorer = explorer or RandomExplorer(random_state=random_state)
+            agent: Optional[WallAgent] = None, dt: float = 0.05) -> ExplorationLog:
+    """`steps` exploration commands of the WallAgent (the switching_controller node's behaviour) in closed loop."""
+    agent = agent or WallAgent(dt, exploration_steps=steps, random_state=random_state)
     pose, bumped = tuple(start), False
     R, U, P = [], [], []
     for _ in range(steps):
         r = robot.read(pose)
-        u = explorer.command(r, bumped)
+        u = agent.step(Observation(state=True, readings=r, bumped=bumped)).command
+        if u is None:
+            break
         R.append(r)
         U.append(u)
         P.append(pose)
         pose, bumped = robot.step(pose, u, dt)
-    cont = np.ones(steps, dtype=bool)
-    cont[-1] = False
+    cont = np.ones(len(R), dtype=bool)
+    cont[-1:] = False
     return ExplorationLog(np.array(R), np.array(U), cont, np.array(P))
 
 
@@ -73,14 +93,19 @@ def sensor2_goal_reading(robot: WheeledRobot, goal_pose) -> np.ndarray:
 
 
 def run_episode(robot: WheeledRobot, model: SensorManifoldModel, start, goal_reading: np.ndarray,
-                controller: Optional[SwitchingController] = None, max_steps: int = 1500,
-                dt: float = 0.05) -> Episode:
-    controller = controller or SwitchingController(dt)
-    controller.set_goal_from_routes(model.virtual_, goal_reading, model.sensor2_noise_)
+                tolerance: float = 0.01, max_steps: int = 1500, dt: float = 0.05,
+                max_wheel_speed: float = 6.0) -> Episode:
+    """One reach of the WallAgent (the switching_controller node's behaviour) from `start` to the goal reading, with
+    the learner's StateTracker making the states as the sensor_manifold node does."""
+    agent = WallAgent(dt, exploration_steps=0, max_wheel_speed=max_wheel_speed, tolerance=tolerance,
+                      max_reach_steps=max_steps)
+    agent.step(Observation(model=agent_model(robot, model)))
+    decision = agent.step(Observation(goal=Goal(np.asarray(goal_reading, dtype=float))))
+    if not decision.goal_accepted:
+        raise ValueError(f'goal rejected: {decision.goal_reason}')
     tracker = StateTracker(model)
     pose, last = tuple(start), None
     ep = Episode()
-    bounds = model.virtual_bounds()
     for _ in range(max_steps):
         r = robot.read(pose)
         space, coords, s2, _ = tracker.update(r, last)
@@ -88,15 +113,14 @@ def run_episode(robot: WheeledRobot, model: SensorManifoldModel, start, goal_rea
         ep.spaces.append(space)
         ep.coordinates.append(None if coords is None else coords.copy())
         ep.readings.append(r)
-        if space == SPACE_NONE:
-            u, done = np.zeros(2), False
-        else:
-            J1 = model.regions1_.interpolate(coords) if space == 1 else None
-            u, done, _ = controller.command(space, coords, s2, model.virtual_.field_, model.field2_, J1, bounds,
-                                            model.sensor2_box_, sensor2_measured=bool(np.all(np.isfinite(r[3:]))))
-        if done:
+        decision = agent.step(Observation(state=True, space=space, coordinates=coords, sensor2_estimate=s2,
+                                          readings=r))
+        if decision.phase == ControllerStatus.PHASE_GOAL_REACHED:
             ep.reached = True
             break
+        if decision.command is None:
+            break
+        u = decision.command
         ep.commands.append(u)
         pose, _ = robot.step(pose, u, dt)
         last = u
@@ -127,5 +151,5 @@ def random_task(rng: np.random.Generator, robot: WheeledRobot) -> Tuple[tuple, t
             return start, goal
 
 
-__all__ = ['explore', 'run_episode', 'oracle_path_length', 'success', 'random_task', 'sensor2_goal_reading',
+__all__ = ['explore', 'run_episode', 'model_message', 'agent_model', 'oracle_path_length', 'success', 'random_task', 'sensor2_goal_reading',
            'PAPER_START', 'PAPER_GOAL', 'wall_relative_state']

@@ -9,10 +9,10 @@ Two estimators over the same data (y_k, u_k, y_k+1), with dy/dt ~= J(y) u:
 """
 from __future__ import annotations
 
-from itertools import combinations_with_replacement
 from typing import Optional, Tuple
 
 import numpy as np
+from mm_common.learned_fields import blend_jacobians, polynomial_features
 from scipy.spatial import cKDTree
 
 
@@ -68,13 +68,12 @@ class RegionJacobians:
 
     def interpolate(self, y: np.ndarray, k: int = 4) -> np.ndarray:
         """Inverse-distance blend of the k nearest known regions' Jacobians at y (for control)."""
-        known = np.nonzero(np.isfinite(self.jacobians_[:, 0, 0]))[0]
-        if not len(known):
-            raise ValueError('no region has enough support yet')
-        d = np.linalg.norm(self.anchors_[known] - np.asarray(y, dtype=float), axis=1)
-        order = np.argsort(d)[:k]
-        w = 1.0 / (d[order] + 1e-3)
-        return np.einsum('a,aij->ij', w, self.jacobians_[known[order]]) / w.sum()
+        known = self.known()
+        return blend_jacobians(self.anchors_[known], self.jacobians_[known], y, k)
+
+    def known(self) -> np.ndarray:
+        """Indices of the regions with enough support for a Jacobian."""
+        return np.flatnonzero(np.isfinite(self.jacobians_[:, 0, 0]))
 
     def at(self, y: np.ndarray) -> Tuple[np.ndarray, np.ndarray, float]:
         """Estimate of the nearest known region: (J, standard errors, support)."""
@@ -84,16 +83,6 @@ class RegionJacobians:
         cand = np.nonzero(known)[0]
         i = cand[np.argmin(np.linalg.norm(self.anchors_[cand] - np.asarray(y, dtype=float), axis=1))]
         return self.jacobians_[i], self.standard_errors_[i], float(self.support_[i])
-
-
-def polynomial_features(Y: np.ndarray, degree: int, center: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """1, y_i, y_i y_j, ... of the standardised y, up to `degree`."""
-    Z = (np.atleast_2d(Y) - center) / scale
-    cols = [np.ones(len(Z))]
-    for d in range(1, degree + 1):
-        for combo in combinations_with_replacement(range(Z.shape[1]), d):
-            cols.append(np.prod(Z[:, combo], axis=1))
-    return np.stack(cols, axis=1)
 
 
 class PolynomialJacobianField:

@@ -18,6 +18,9 @@ from pathlib import Path
 from typing import List, Optional, Tuple
 
 import numpy as np
+from mm_msgs.msg import ManifoldState
+
+from mm_common.learned_fields import n_polynomial_features
 
 from mm_manifold.dimension import LocalPCADimension
 from mm_manifold.grid import ElasticGrid
@@ -26,7 +29,9 @@ from mm_manifold.virtual_space import Excursion, ExtrapolatedField, VirtualSenso
 
 SENSOR1 = (0, 1, 2)
 SENSOR2 = (3, 4)
-SPACE_NONE, SPACE_SENSOR1, SPACE_VIRTUAL, SPACE_SENSOR2 = 0, 1, 2, 3
+# The active spaces are the state message's constants (their one home).
+SPACE_NONE, SPACE_SENSOR1 = ManifoldState.SPACE_NONE, ManifoldState.SPACE_SENSOR1
+SPACE_VIRTUAL, SPACE_SENSOR2 = ManifoldState.SPACE_VIRTUAL_SENSOR1, ManifoldState.SPACE_SENSOR2
 FORMAT_VERSION = 3
 
 
@@ -195,51 +200,121 @@ class SensorManifoldModel:
                 arrays = {k: data[k] for k in data.files if k != 'meta'}
         except (OSError, ValueError, KeyError, json.JSONDecodeError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
             raise ValueError(f'cannot read model {path}: {exc}') from exc
+        if not isinstance(meta, dict):
+            raise ValueError(f'model {path}: meta is a {type(meta).__name__}, not a mapping')
         if meta.get('format_version') != FORMAT_VERSION:
             raise ValueError(f"model {path}: format {meta.get('format_version')} != {FORMAT_VERSION}")
         try:
-            model = cls(meta['dt'], meta['grid_rows'], meta['grid_cols'], meta['jacobian_degree'],
-                        meta['virtual_prior_weight'], meta['route_travel_weight'])
-            model.dimension_ = meta['dimension']
-            model.sensor2_noise_ = np.asarray(meta['sensor2_noise'], dtype=float)
-            model.n_samples_, model.n_excursions_ = meta['n_samples'], meta['n_excursions']
-            model.sensor2_box_ = arrays['sensor2_box']
-            grid = ElasticGrid(meta['grid_rows'], meta['grid_cols'])
-            grid.nodes_, grid.mean_, grid.axes_ = arrays['grid_nodes'], arrays['grid_mean'], arrays['grid_axes']
-            grid.extent_ = arrays['grid_extent']
-            grid.residual_ = meta['grid_residual']
-            if grid.nodes_.shape[:2] != (meta['grid_rows'], meta['grid_cols']) or not np.all(np.isfinite(grid.nodes_)):
-                raise ValueError('grid nodes do not match the grid shape or are not finite')
-            model.grid_ = grid
-            model.field1_ = _field(meta['jacobian_degree'], arrays['field1_theta'], arrays['field1_center'],
-                                   arrays['field1_scale'])
-            model.field2_ = (_field(meta['jacobian_degree'], arrays['field2_theta'], arrays['field2_center'],
-                                    arrays['field2_scale']) if 'field2_theta' in arrays else None)
-            model.regions1_ = RegionJacobians()
-            model.regions1_.anchors_ = arrays['regions1_anchors']
-            model.regions1_.jacobians_ = arrays['regions1_jacobians']
-            model.regions1_.standard_errors_ = arrays['regions1_errors']
-            model.regions1_.support_ = arrays['regions1_support']
-            virtual = VirtualSensorSpace(meta['dt'], model.grid_box(), model.virtual_bounds(),
-                                         meta['virtual_prior_weight'],
-                                         route_travel_weight=meta['route_travel_weight'])
-            if arrays['virtual_correction'].shape != model.field1_.theta_.shape:
-                raise ValueError('virtual-space correction does not match the Jacobian field')
-            virtual.field_ = ExtrapolatedField(model.field1_, correction=arrays['virtual_correction'])
-            virtual.reentry_rms_before_ = meta['reentry_rms_before']
-            virtual.reentry_rms_after_ = meta['reentry_rms_after']
-            virtual.n_excursions_ = meta['n_excursions']
-            virtual.overlap_coordinates_ = arrays['overlap_coordinates']
-            virtual.overlap_sensor2_ = arrays['overlap_sensor2']
-            virtual.overlap_exits_ = arrays['overlap_exits']
-            virtual.overlap_travel_ = arrays['overlap_travel']
-            if not (len(virtual.overlap_coordinates_) == len(virtual.overlap_sensor2_) == len(virtual.overlap_exits_)
-                    == len(virtual.overlap_travel_)):
-                raise ValueError('sensor-2 overlap arrays differ in length')
-            model.virtual_ = virtual
+            model = cls._from_parts(meta, arrays)
         except KeyError as exc:
             raise ValueError(f'model {path} lacks {exc}') from exc
+        except (ValueError, TypeError, IndexError) as exc:
+            raise ValueError(f'model {path}: {exc}') from exc
         return model
+
+    @classmethod
+    def _from_parts(cls, meta: dict, arrays: dict) -> 'SensorManifoldModel':
+        """Rebuild a model from its saved parts, checking every field's type, shape and range."""
+        for name in ('dt', 'virtual_prior_weight', 'route_travel_weight', 'grid_residual'):
+            if not _number(meta[name]) or meta[name] < 0 or (name == 'dt' and meta[name] == 0):
+                raise ValueError(f'{name} {meta[name]!r} must be a finite number (> 0 for dt, else >= 0)')
+        for name, low in (('grid_rows', 2), ('grid_cols', 2), ('jacobian_degree', 0), ('dimension', 0),
+                          ('n_samples', 0), ('n_excursions', 0)):
+            if not isinstance(meta[name], int) or isinstance(meta[name], bool) or meta[name] < low:
+                raise ValueError(f'{name} {meta[name]!r} must be an integer >= {low}')
+        if meta['jacobian_degree'] > 4:
+            raise ValueError(f"jacobian_degree {meta['jacobian_degree']} above 4")
+        for name in ('reentry_rms_before', 'reentry_rms_after'):
+            value = meta[name]
+            if not (isinstance(value, float) and (np.isnan(value) or (np.isfinite(value) and value >= 0))):
+                raise ValueError(f'{name} {value!r} must be a number >= 0 (NaN: no excursion)')
+        rows, cols, degree = meta['grid_rows'], meta['grid_cols'], meta['jacobian_degree']
+        f = n_polynomial_features(degree, 2)
+        a = rows * cols
+        o = len(np.atleast_1d(arrays['overlap_travel']))
+        shapes = {'grid_nodes': (rows, cols, 3), 'grid_mean': (3,), 'grid_axes': (3, 3), 'grid_extent': (2, 2),
+                  'sensor2_box': (2, 2), 'field1_theta': (f, 2, 2), 'field1_center': (2,), 'field1_scale': (2,),
+                  'virtual_correction': (f, 2, 2), 'overlap_coordinates': (o, 2), 'overlap_sensor2': (o, 2),
+                  'overlap_exits': (o, 2), 'overlap_travel': (o,), 'regions1_anchors': (a, 2),
+                  'regions1_jacobians': (a, 2, 2), 'regions1_errors': (a, 2, 2), 'regions1_support': (a,)}
+        if 'field2_theta' in arrays:
+            shapes.update(field2_theta=(f, 2, 2), field2_center=(2,), field2_scale=(2,))
+        may_be_nan = {'sensor2_box', 'regions1_jacobians', 'regions1_errors'}   # never seen / unknown region
+        for name, shape in shapes.items():
+            value = arrays[name]
+            if value.dtype.kind not in 'fi' or value.shape != shape:
+                raise ValueError(f'{name} has shape {value.shape} ({value.dtype}), expected {shape} of numbers')
+            finite = np.isfinite(value) | (np.isnan(value) if name in may_be_nan else False)
+            if not np.all(finite):
+                raise ValueError(f'{name} is not finite')
+            arrays[name] = value.astype(float)
+        for name in ('field1_scale', 'field2_scale'):
+            if name in arrays and np.any(arrays[name] <= 0):
+                raise ValueError(f'{name} must be > 0')
+        if not np.any(np.isfinite(arrays['regions1_jacobians'][:, 0, 0])):
+            raise ValueError('no sensor-1 region has a Jacobian')
+        noise = np.asarray(meta['sensor2_noise'], dtype=float)
+        if noise.shape != (2,) or not np.all(np.isfinite(noise)) or np.any(noise < 0):
+            raise ValueError(f"sensor2_noise {meta['sensor2_noise']!r} must be two numbers >= 0")
+
+        model = cls(meta['dt'], rows, cols, degree, meta['virtual_prior_weight'], meta['route_travel_weight'])
+        model.dimension_ = meta['dimension']
+        model.sensor2_noise_ = noise
+        model.n_samples_, model.n_excursions_ = meta['n_samples'], meta['n_excursions']
+        model.sensor2_box_ = arrays['sensor2_box']
+        grid = ElasticGrid(rows, cols)
+        grid.nodes_, grid.mean_, grid.axes_ = arrays['grid_nodes'], arrays['grid_mean'], arrays['grid_axes']
+        grid.extent_ = arrays['grid_extent']
+        grid.residual_ = float(meta['grid_residual'])
+        model.grid_ = grid
+        model.field1_ = _field(degree, arrays['field1_theta'], arrays['field1_center'], arrays['field1_scale'])
+        model.field2_ = (_field(degree, arrays['field2_theta'], arrays['field2_center'], arrays['field2_scale'])
+                         if 'field2_theta' in arrays else None)
+        model.regions1_ = RegionJacobians()
+        model.regions1_.anchors_ = arrays['regions1_anchors']
+        model.regions1_.jacobians_ = arrays['regions1_jacobians']
+        model.regions1_.standard_errors_ = arrays['regions1_errors']
+        model.regions1_.support_ = arrays['regions1_support']
+        virtual = VirtualSensorSpace(meta['dt'], model.grid_box(), model.virtual_bounds(),
+                                     meta['virtual_prior_weight'], route_travel_weight=meta['route_travel_weight'])
+        virtual.field_ = ExtrapolatedField(model.field1_, correction=arrays['virtual_correction'])
+        virtual.reentry_rms_before_, virtual.reentry_rms_after_ = meta['reentry_rms_before'], meta['reentry_rms_after']
+        virtual.n_excursions_ = meta['n_excursions']
+        virtual.overlap_coordinates_ = arrays['overlap_coordinates']
+        virtual.overlap_sensor2_ = arrays['overlap_sensor2']
+        virtual.overlap_exits_ = arrays['overlap_exits']
+        virtual.overlap_travel_ = arrays['overlap_travel']
+        model.virtual_ = virtual
+        return model
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+
+
+def refit_problem(live: Optional['SensorManifoldModel'], new: 'SensorManifoldModel', R: np.ndarray, U: np.ndarray,
+                  continuous: np.ndarray) -> Optional[str]:
+    """Why a refit must not replace the live model (None: it may). It must map sensor-2 goals if the live one can,
+    have been fitted on at least as many samples (a restarted node's first refits see only its new samples), keep
+    most of the practised routes (excursions with a sensor-2 overlap), and predict the sensor-2 readings of the
+    samples the live model did not see (R, U, continuous) about as well (one-step error, 25 % slack)."""
+    if live is None or not live.ready:
+        return None
+    if not new.ready:
+        return 'the refit cannot map sensor-2 goals, the live model can'
+    if new.n_samples_ < live.n_samples_:
+        return f'the refit saw {new.n_samples_} samples, the live model {live.n_samples_}'
+    routes = [len(np.unique(m.virtual_.overlap_exits_, axis=0)) for m in (live, new)]
+    if routes[1] < routes[0] / 2:
+        return f'the refit has {routes[1]} practised routes to sensor 2, the live model {routes[0]}'
+    pair = np.asarray(continuous[:-1], dtype=bool) & group_in_range(R[:-1], SENSOR2) & group_in_range(R[1:], SENSOR2)
+    if pair.sum() >= 20:
+        S0, S1, U0 = R[:-1][pair][:, list(SENSOR2)], R[1:][pair][:, list(SENSOR2)], U[:-1][pair]
+        errors = [float(np.sqrt(np.mean((S1 - S0 - m.field2_.rates(S0, U0) * m.dt) ** 2))) for m in (live, new)]
+        if not np.isfinite(errors[1]) or errors[1] > 1.25 * errors[0]:
+            return (f'the refit predicts the newest sensor-2 readings worse ({errors[1]:.2e} m vs '
+                    f'{errors[0]:.2e} m RMS one-step error)')
+    return None
 
 
 def _field(degree, theta, center, scale) -> PolynomialJacobianField:

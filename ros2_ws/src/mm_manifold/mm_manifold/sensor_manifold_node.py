@@ -11,14 +11,20 @@ afresh from it. A step the simulator re-publishes (it does so until the loop sta
 sent again so a controller that joined late can start the loop.
 
 After `learn_after` samples the SensorManifoldModel (dimension, elastic grid, Jacobians, virtual sensor space) is
-fitted in a background thread, and refitted every `refit_every` further samples - and after `learn_after // 4`
-more when sensor 2 was not seen during the excursions (such a model cannot map a sensor-2 goal, so the controller
-explores on; it happened in a noisy graph run). The model is saved atomically to
-`model_path` (np.savez + JSON) and announced on the latched `wheeled/manifold/model` topic; a saved model is loaded
-at start, so a restart does not relearn. Every sample gives one `wheeled/manifold/state` (and a Jacobian estimate).
+fitted in a background thread (on copies: the live model is never changed, a finished fit is swapped in on the
+executor), and refitted every `refit_every` further samples - and after `learn_after // 4` more when sensor 2 was not
+seen during the excursions (such a model cannot map a sensor-2 goal, so the controller explores on). A refit that is
+worse than the live model (fewer samples, cannot map goals the live one can, fewer practised routes, worse sensor-2
+prediction of the newest samples) is logged and dropped. The model is published as an mm_msgs/SensorManifoldModel
+message on the latched `wheeled/manifold/model` topic (the controller needs no file and may run on another host); with
+`model_path` set it is also saved atomically there (np.savez + JSON) and loaded at start (every field checked; a bad
+file means learning anew), so a restart does not relearn. Every sample gives one `wheeled/manifold/state` (and a
+Jacobian estimate). Every input is validated (Range: REP 117, within its limits, sane stamps; commands: two finite
+values) and a bad one is dropped with a throttled log line saying why.
 """
 from __future__ import annotations
 
+import copy
 import math
 import threading
 from pathlib import Path
@@ -27,29 +33,50 @@ from typing import Dict, List, Optional
 import numpy as np
 from mm_common.node_utils import declare, reject_non_finite, run_node
 from mm_msgs.msg import JacobianEstimate, ManifoldState
+from mm_msgs.msg import SensorManifoldModel as ModelMsg
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Range
-from std_msgs.msg import Float64MultiArray, String
+from std_msgs.msg import Float64MultiArray
 
+from mm_manifold.model_message import model_to_msg
 from mm_manifold.sensor_manifold import (SENSOR1, SENSOR2, SPACE_NONE, SPACE_SENSOR1, SPACE_SENSOR2,
-                                         SPACE_VIRTUAL, SensorManifoldModel, StateTracker)
+                                         SPACE_VIRTUAL, SensorManifoldModel, StateTracker, refit_problem)
 
 SENSOR_NAMES = ('front_left', 'front_center', 'front_right', 'side_front', 'side_rear')
 # Lockstep loop topics are RELIABLE (no sample may be lost, the controller waits for each state).
 LOOP_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
-# The model announcement is latched state: late joiners must get the last one.
+# The model is latched state (TRANSIENT_LOCAL, depth 1): a controller that starts or restarts after the fit still gets
+# the newest model at once; RELIABLE because a lost model would leave the controller unable to control.
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 SPACE_NAMES = {SPACE_SENSOR1: 'sensor1_grid', SPACE_VIRTUAL: 'virtual_sensor1', SPACE_SENSOR2: 'sensor2'}
+MAX_STAMP_AHEAD = 60.0       # [s] a reading stamped further ahead of this node's clock (or newest sample) is forged
+MAX_PENDING_STEPS = 64       # incomplete steps kept while their other readings are on the way
+
+
+def range_problem(msg: Range) -> Optional[str]:
+    """Why a Range message is unusable, or None. REP 117: +inf beyond max_range, -inf below min_range; NaN is a lost
+    reading (the simulator's dropout); a finite reading must lie within [min_range, max_range]."""
+    if msg.radiation_type not in (Range.ULTRASOUND, Range.INFRARED):
+        return f'unknown radiation_type {msg.radiation_type}'
+    if not msg.header.frame_id:
+        return 'empty frame_id'
+    if not (math.isfinite(msg.field_of_view) and 0.0 <= msg.field_of_view <= math.pi):
+        return f'field_of_view {msg.field_of_view} outside [0, pi] rad'
+    if not (math.isfinite(msg.min_range) and math.isfinite(msg.max_range) and 0.0 <= msg.min_range < msg.max_range):
+        return f'min_range {msg.min_range} / max_range {msg.max_range} need 0 <= min < max'
+    if math.isfinite(msg.range) and not msg.min_range <= msg.range <= msg.max_range:
+        return f'range {msg.range} m outside [{msg.min_range}, {msg.max_range}] m (out of range is +-inf)'
+    return None
 
 
 class SensorManifold(Node):
     def __init__(self, **node_kwargs):
         super().__init__('sensor_manifold', **node_kwargs)
-        self.dt = declare(self, 'dt', 0.05, 'Simulator step [s] between consecutive samples', min_value=1e-4,
-                          max_value=1.0)
+        self.dt = declare(self, 'dt', 0.05, 'Simulator step [s] between consecutive samples; fixed at start-up',
+                          min_value=1e-4, max_value=1.0, read_only=True)
         self.learn_after = declare(self, 'learn_after', 10000, 'Samples collected before the first fit',
                                    min_value=100, max_value=10_000_000)
         self.refit_every = declare(self, 'refit_every', 0, 'Refit after this many new samples (0: never)',
@@ -57,8 +84,8 @@ class SensorManifold(Node):
         self.grid_shape = declare(self, 'grid_shape', [10, 10], 'Elastic grid nodes [rows, cols]', read_only=True)
         self.jacobian_degree = declare(self, 'jacobian_degree', 2, 'Polynomial degree of the Jacobian fields',
                                        min_value=0, max_value=4, read_only=True)
-        self.model_path = declare(self, 'model_path', '', 'Where the learned model is saved and loaded ("": not '
-                                  'persisted)', read_only=True)
+        self.model_path = declare(self, 'model_path', '', 'Where the learner keeps its model across restarts ("": '
+                                  'not persisted); the model reaches the controller as a message', read_only=True)
         self.hold_steps = declare(self, 'hold_steps', 3, 'Lost (NaN) readings bridged with the last value for '
                                   'this many steps', min_value=0, max_value=100)
         # Longer than the controller ever takes to answer (it may itself wait for a bumper reading), so that only a
@@ -78,16 +105,19 @@ class SensorManifold(Node):
         self.waiting: Optional[tuple] = None      # (reading, stamp, steady time) of a sample waiting for its command
         self.last_sample_ns: Optional[int] = None  # stamp of the newest sample taken
         self.last_state: Optional[ManifoldState] = None
+        self.sensor_limits: Dict[int, tuple] = {}  # sensor index -> (min_range, max_range) of its latest reading
         self.rejected = 0
         self.model: Optional[SensorManifoldModel] = None
+        self.model_published = False
+        self.live_fitted_on = 0                   # samples of this run the live model was fitted on
         self.tracker: Optional[StateTracker] = None
         self.fitting: Optional[threading.Thread] = None
+        self.fit_result: List = []                # written once by the fitting thread, read after it ended
         self.fitted_samples = 0
-        self.lock = threading.Lock()
 
         self.state_pub = self.create_publisher(ManifoldState, 'wheeled/manifold/state', LOOP_QOS)
         self.jacobian_pub = self.create_publisher(JacobianEstimate, 'wheeled/manifold/jacobian', LOOP_QOS)
-        self.model_pub = self.create_publisher(String, 'wheeled/manifold/model', LATCHED_QOS)
+        self.model_pub = self.create_publisher(ModelMsg, 'wheeled/manifold/model', LATCHED_QOS)
         for index, name in enumerate(SENSOR_NAMES):
             self.create_subscription(Range, f'wheeled/range/{name}',
                                      lambda msg, i=index: self._on_range(i, msg), LOOP_QOS)
@@ -104,13 +134,18 @@ class SensorManifold(Node):
         result = reject_non_finite(params)
         if result.successful:
             for p in params:
-                if p.name == 'dt':
-                    return SetParametersResult(successful=False, reason='dt can only be set at start-up')
                 if p.name in ('learn_after', 'refit_every', 'hold_steps'):
                     setattr(self, p.name, int(p.value))
+                if p.name == 'hold_steps' and self.tracker is not None:
+                    self.tracker.hold_steps = int(p.value)
                 if p.name == 'command_wait':
                     self.command_wait = float(p.value)
         return result
+
+    def _reject(self, what: str, reason: str) -> None:
+        self.rejected += 1
+        self.get_logger().warn(f'{what} rejected ({self.rejected} inputs so far): {reason}',
+                               throttle_duration_sec=1.0)
 
     # --- model lifecycle ----------------------------------------------------------------------------------------
     def _load(self) -> None:
@@ -120,6 +155,8 @@ class SensorManifold(Node):
             model = SensorManifoldModel.load(self.model_path)
             if not math.isclose(model.dt, self.dt):
                 raise ValueError(f'model dt {model.dt} != node dt {self.dt}')
+            if tuple(self.grid_shape) != (model.grid_rows, model.grid_cols):
+                raise ValueError(f'model grid {model.grid_rows}x{model.grid_cols} != grid_shape {self.grid_shape}')
         except ValueError as exc:
             self.get_logger().error(f'{exc}; learning a new model')
             return
@@ -129,28 +166,46 @@ class SensorManifold(Node):
     def _install(self, model: SensorManifoldModel) -> None:
         self.model = model
         self.tracker = StateTracker(model, hold_steps=self.hold_steps)
-        self.model_pub.publish(String(data=str(Path(self.model_path).resolve()) if self.model_path else ''))
+        self.model_published = False
+        self._publish_model()
+
+    def _publish_model(self) -> None:
+        """The model goes out once the sensor-2 sensors' range is known (their first readings): a goal is checked
+        against it."""
+        if self.model is None or self.model_published or not all(i in self.sensor_limits for i in SENSOR2):
+            return
+        limits = [self.sensor_limits[i] for i in SENSOR2]
+        msg = model_to_msg(self.model, [max(lo for lo, _ in limits), min(hi for _, hi in limits)])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = 'base_link'
+        self.model_pub.publish(msg)
+        self.model_published = True
 
     def _start_fit(self) -> None:
         R = np.array(self.readings)
         U = np.array(self.commands + [np.zeros(2)])
         C = np.array(self.continuous + [False])
-        warm = self.model.grid_ if self.model is not None else None
+        # The fitting thread gets copies only (the warm-start grid too: partial_fit changes it); the live model
+        # is never changed after install, so the thread may read it for the comparison.
+        warm = copy.deepcopy(self.model.grid_) if self.model is not None else None
+        live, live_fitted_on = self.model, self.live_fitted_on
         self.fitted_samples = len(R)
         self.get_logger().info(f'fitting the sensor manifold on {len(R)} samples '
                                f'({int(np.sum(~C[:-1]))} breaks in the chain of consecutive samples)')
+        result: List = []
 
         def fit():
             try:
                 model = SensorManifoldModel(self.dt, *self.grid_shape, jacobian_degree=self.jacobian_degree).fit(
                     R, U, C, grid=warm)
-                if self.model_path:
+                problem = refit_problem(live, model, R[live_fitted_on:], U[live_fitted_on:], C[live_fitted_on:])
+                if problem is None and self.model_path:
                     model.save(self.model_path)
-                self.fit_result = model
+                result.append((model, problem))
             except ValueError as exc:
-                self.fit_result = exc
+                result.append((None, str(exc)))
 
-        self.fit_result = None
+        self.fit_result = result
         self.fitting = threading.Thread(target=fit, name='manifold_fit', daemon=True)
         self.fitting.start()
 
@@ -159,11 +214,15 @@ class SensorManifold(Node):
         if self.fitting is None or self.fitting.is_alive():
             return
         self.fitting = None
-        if isinstance(self.fit_result, Exception):
-            self.get_logger().error(f'fit failed: {self.fit_result}; will retry with more samples')
+        m, problem = self.fit_result[0] if self.fit_result else (None, 'the fitting thread ended without a result')
+        if m is None:
+            self.get_logger().error(f'fit failed: {problem}; will retry with more samples')
             self.fitted_samples = len(self.readings) - self.learn_after // 2
             return
-        m = self.fit_result
+        if problem is not None:
+            self.get_logger().warn(f'refit on {m.n_samples_} samples not used, the live model is kept: {problem}')
+            return
+        self.live_fitted_on = m.n_samples_
         self._install(m)
         self.get_logger().info(
             f'model {"ready" if m.ready else "fitted"}: dimension {m.dimension_}, grid residual '
@@ -179,9 +238,7 @@ class SensorManifold(Node):
         data = np.asarray(msg.data, dtype=float)
         if data.shape != (2,) or not np.all(np.isfinite(data)):
             # The simulator rejects it too: it did not move the robot, so it is no part of the chain either.
-            self.rejected += 1
-            self.get_logger().warn(f'ignored command {list(data)} ({self.rejected} so far): need two finite '
-                                   'wheel speeds', throttle_duration_sec=1.0)
+            self._reject('command', f'{list(data)}: need two finite wheel speeds')
             return
         self.commands_since_sample.append(data)
         if self.waiting is not None:
@@ -196,18 +253,35 @@ class SensorManifold(Node):
             self.waiting = None
             self._on_sample(reading, stamp)
 
+    def _stamp_problem(self, stamp: int) -> Optional[str]:
+        now = self.get_clock().now().nanoseconds
+        reference, what = (now, 'the clock') if now > 0 else (self.last_sample_ns, 'the newest sample')
+        if reference is not None and stamp > reference + MAX_STAMP_AHEAD * 1e9:
+            return f'stamp {stamp * 1e-9:.3f} s is more than {MAX_STAMP_AHEAD} s ahead of {what}'
+        if self.last_sample_ns is not None and stamp < self.last_sample_ns:
+            return f'stamp {stamp * 1e-9:.3f} s goes backwards (newest sample {self.last_sample_ns * 1e-9:.3f} s)'
+        return None
+
     def _on_range(self, index: int, msg: Range) -> None:
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        problem = range_problem(msg) or self._stamp_problem(stamp)
+        if problem:
+            self._reject(f'{SENSOR_NAMES[index]} reading', problem)
+            return
+        self.sensor_limits[index] = (float(msg.min_range), float(msg.max_range))
         values = self.pending.setdefault(stamp, [math.nan] * 5 + [0])
         values[index] = msg.range
         values[5] += 1
-        if values[5] == 5:
+        if len(self.pending) > MAX_PENDING_STEPS:
+            del self.pending[min(self.pending)]
+        if values[5] >= 5:
             del self.pending[stamp]
             for old in [s for s in self.pending if s < stamp]:   # incomplete older steps never complete
                 del self.pending[old]
+            self._publish_model()
             if self.last_sample_ns is not None and stamp <= self.last_sample_ns:
-                # A re-published (or stale) step: already a sample. Re-send its state unless it still waits.
-                if stamp == self.last_sample_ns and self.waiting is None and self.last_state is not None:
+                # A re-published step: already a sample. Re-send its state unless it still waits.
+                if self.waiting is None and self.last_state is not None:
                     self.state_pub.publish(self.last_state)
                 return
             self.last_sample_ns = stamp

@@ -13,9 +13,10 @@ from dataclasses import dataclass, field
 from typing import List, Optional
 
 import numpy as np
+from mm_common.learned_fields import deeper_fallbacks, polynomial_features, ranked_routes
 from scipy.optimize import least_squares
 
-from mm_manifold.jacobian import PolynomialJacobianField, polynomial_features
+from mm_manifold.jacobian import PolynomialJacobianField
 
 
 @dataclass
@@ -173,30 +174,15 @@ class VirtualSensorSpace:
         neighbours), and virtual coordinates of practised readings nearer the wall than the goal (ordered by
         closeness to it), to aim at if the goal's coordinates are reached without sensor 2 in sight."""
         (exit_point, goal), = self.ranked_routes(sensor2_goal, 1)
-        mismatch = np.linalg.norm(self.overlap_sensor2_ - np.asarray(sensor2_goal, dtype=float), axis=1)
-        deeper = np.flatnonzero(np.all(self.overlap_sensor2_ < sensor2_goal, axis=1))
-        order = deeper[np.argsort(mismatch[deeper])]
-        step = max(1, len(order) // (4 * n_fallbacks))     # spread the fallbacks a little deeper each time
-        return exit_point, goal, self.overlap_coordinates_[order[::step][:n_fallbacks]]
+        return exit_point, goal, deeper_fallbacks(self.overlap_sensor2_, self.overlap_coordinates_, sensor2_goal,
+                                                  n_fallbacks)
 
     def ranked_routes(self, sensor2_goal: np.ndarray, n_routes: int) -> List[tuple]:
         """[(exit point, goal coordinates)] of up to `n_routes` different practised excursions, best first (the
         cost of goal_route). The later ones are where to try again when the first did not bring sensor 2 in sight."""
-        if not len(self.overlap_sensor2_):
-            raise ValueError('no overlap with sensor 2 has been observed yet')
-        mismatch = np.linalg.norm(self.overlap_sensor2_ - np.asarray(sensor2_goal, dtype=float), axis=1)
-        cost = mismatch + self.route_travel_weight * self.overlap_travel_
-        exits, excursion = np.unique(self.overlap_exits_, axis=0, return_inverse=True)
-        excursion = excursion.ravel()
-        best_cost = np.full(len(exits), np.inf)
-        np.minimum.at(best_cost, excursion, cost)
-        routes = []
-        for e in np.argsort(best_cost)[:n_routes]:
-            same = np.flatnonzero(excursion == e)
-            idx = same[np.argsort(mismatch[same])[:self.goal_neighbors]]
-            w = 1.0 / (mismatch[idx] + 1e-4)
-            routes.append((exits[e], (self.overlap_coordinates_[idx] * w[:, None]).sum(axis=0) / w.sum()))
-        return routes
+        return ranked_routes(self.overlap_sensor2_, self.overlap_coordinates_, self.overlap_exits_,
+                             self.overlap_travel_, sensor2_goal, n_routes, self.route_travel_weight,
+                             self.goal_neighbors)
 
     def step(self, coordinates: np.ndarray, command: np.ndarray) -> np.ndarray:
         """One Euler step of the virtual coordinates under a command."""

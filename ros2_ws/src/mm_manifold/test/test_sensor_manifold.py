@@ -13,7 +13,8 @@ from mm_manifold.dimension import LocalPCADimension
 from mm_manifold.grid import ElasticGrid
 from mm_manifold.jacobian import PolynomialJacobianField
 from mm_manifold.sensor_manifold import (SENSOR1, SENSOR2, SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL,
-                                         SensorManifoldModel, StateTracker, find_excursions, group_in_range)
+                                         SensorManifoldModel, StateTracker, find_excursions, group_in_range,
+                                         refit_problem)
 from mm_manifold.virtual_space import Excursion, VirtualSensorSpace
 from mm_sim.wheeled_model import WheeledRobot
 
@@ -439,14 +440,51 @@ def test_load_rejects_missing_corrupt_and_foreign_files(model, tmp_path):
         SensorManifoldModel.load(partial)
     uneven = tmp_path / 'uneven_overlap.npz'
     np.savez(uneven, **{**arrays, 'overlap_travel': arrays['overlap_travel'][1:]})
-    with pytest.raises(ValueError, match='differ in length'):
+    with pytest.raises(ValueError, match='overlap_coordinates has shape'):
         SensorManifoldModel.load(uneven)
     bad_nodes = tmp_path / 'nan_nodes.npz'
     nodes = arrays['grid_nodes'].copy()
     nodes[0, 0, 0] = np.nan
     np.savez(bad_nodes, **{**arrays, 'grid_nodes': nodes})
-    with pytest.raises(ValueError, match='grid nodes'):
+    with pytest.raises(ValueError, match='grid_nodes is not finite'):
         SensorManifoldModel.load(bad_nodes)
+    # Crafted files (issue 13): every field's type, shape and range is checked, nothing crashes later.
+    crafted = {
+        'meta is a list': ({'meta': np.array(json.dumps([meta]))}, 'not a mapping'),
+        'dt as a string': ({'meta': np.array(json.dumps({**meta, 'dt': '0.05'}))}, 'dt'),
+        'grid rows as a float': ({'meta': np.array(json.dumps({**meta, 'grid_rows': 10.5}))}, 'grid_rows'),
+        'no region Jacobian': ({'regions1_anchors': np.zeros((0, 2)), 'regions1_jacobians': np.zeros((0, 2, 2)),
+                                'regions1_errors': np.zeros((0, 2, 2)), 'regions1_support': np.zeros(0)},
+                               'regions1_anchors has shape'),
+        'all regions unknown': ({'regions1_jacobians': np.full_like(arrays['regions1_jacobians'], np.nan)},
+                                'no sensor-1 region'),
+        'string array': ({'grid_mean': np.array(['a', 'b', 'c'])}, 'grid_mean'),
+        'negative noise': ({'meta': np.array(json.dumps({**meta, 'sensor2_noise': [-1.0, 0.0]}))}, 'sensor2_noise'),
+        'zero scale': ({'field1_scale': np.zeros(2)}, 'field1_scale'),
+    }
+    for case, (changes, reason) in crafted.items():
+        path = tmp_path / 'crafted.npz'
+        np.savez(path, **{**arrays, **changes})
+        with pytest.raises(ValueError, match=reason):
+            SensorManifoldModel.load(path)
+
+
+def test_a_worse_refit_does_not_replace_the_live_model(model, train_log):
+    """Issue 13: a refit on fewer samples (a restarted node's first ones), one that cannot map sensor-2 goals, or one
+    that predicts the newest sensor-2 readings worse is refused with the reason; an equal one is accepted."""
+    R, U, C = train_log.readings, train_log.commands, train_log.continuous
+    assert refit_problem(None, model, R, U, C) is None and refit_problem(model, model, R, U, C) is None
+    few = copy.copy(model)
+    few.n_samples_ = 130
+    assert 'saw 130 samples' in refit_problem(model, few, R, U, C)
+    blind = copy.copy(model)
+    blind.virtual_ = copy.copy(model.virtual_)
+    blind.virtual_.overlap_sensor2_ = np.zeros((0, 2))
+    assert 'cannot map sensor-2 goals' in refit_problem(model, blind, R, U, C)
+    wrong = copy.copy(model)
+    wrong.field2_ = copy.copy(model.field2_)
+    wrong.field2_.theta_ = -model.field2_.theta_
+    assert 'predicts the newest sensor-2 readings worse' in refit_problem(model, wrong, R, U, C)
 
 
 def test_fit_rejects_bad_logs(train_log):

@@ -1,16 +1,18 @@
 """The sensor manifold node in-process: five Range messages of one stamp make one sample and one ManifoldState; bad
-commands are ignored; a saved model is loaded at start, announced on the latched model topic and used for the state;
-a corrupt model file means learning anew; bad parameter updates are refused."""
+commands and readings are rejected and the next valid ones used; a saved model is loaded at start, published as a
+message on the latched model topic and used for the state; a corrupt model file means learning anew; a refit that is
+worse than the live model does not replace it; bad parameter updates are refused."""
 import math
 
 import numpy as np
 import pytest
 from mm_common.testing import RosHarness
 from mm_msgs.msg import JacobianEstimate, ManifoldState
+from mm_msgs.msg import SensorManifoldModel as ModelMsg
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Range
-from std_msgs.msg import Float64MultiArray, String
+from std_msgs.msg import Float64MultiArray
 
 from mm_bringup.wall_experiment import explore
 from mm_manifold.sensor_manifold import SPACE_NONE, SPACE_SENSOR1, SPACE_VIRTUAL, SensorManifoldModel
@@ -55,11 +57,12 @@ class Rig:
 
     def subscribe_model(self):
         """A late joiner on the latched model topic."""
-        self.client.create_subscription(String, 'wheeled/manifold/model', self.models.append, LATCHED)
+        self.client.create_subscription(ModelMsg, 'wheeled/manifold/model', self.models.append, LATCHED)
 
     def publish_step(self, sec, readings, only=range(5)):
         for i in only:
-            msg = Range(radiation_type=Range.INFRARED, min_range=0.005, max_range=1.5, range=float(readings[i]))
+            msg = Range(radiation_type=Range.INFRARED, min_range=0.005, max_range=1.5 if i < 3 else 0.25,
+                        range=float(readings[i]))
             msg.header.stamp.sec = sec
             msg.header.frame_id = SENSOR_NAMES[i]
             self.ranges[i].publish(msg)
@@ -158,13 +161,17 @@ def test_loads_saved_model_announces_it_and_tracks_the_state(model_file):
     rig = Rig({'model_path': str(path), 'learn_after': 100000})
     try:
         assert rig.node.model is not None                             # loaded at start, nothing relearned
-        rig.subscribe_model()                                         # late joiner still gets the announcement
-        assert rig.ros.spin_until(lambda: rig.models, timeout=10)
-        assert rig.models[-1].data == str(path.resolve())
         robot = WheeledRobot()
         reading = robot.read((0.0, 0.6, -math.pi / 2 + 0.2), noisy=False)
         rig.publish_step(1, reading)
         state = rig.wait_states(1)
+        # The model goes out as a message once the sensor-2 range is known; a late joiner still gets it.
+        rig.subscribe_model()
+        assert rig.ros.spin_until(lambda: rig.models, timeout=10)
+        sent = rig.models[-1]
+        assert sent.format_version == ModelMsg.FORMAT_VERSION and sent.samples == model.n_samples_ and sent.ready
+        assert list(sent.sensor2_range) == pytest.approx([0.005, 0.25])       # float32 in Range
+        np.testing.assert_array_equal(sent.grid_nodes, model.grid_.nodes_.ravel())
         assert state.model_ready and state.active_space == SPACE_SENSOR1 and state.manifold_dimension == 2
         assert state.fit_residual == pytest.approx(model.grid_.residual_)
         expected = model.grid_.transform(reading[:3].astype(np.float32).astype(float)[None])[0]
@@ -236,3 +243,34 @@ def test_unusable_model_file_means_learning_anew(model_file, tmp_path, damage):
         assert not state.model_ready and state.active_space == SPACE_NONE
     finally:
         rig.ros.close()
+
+
+def test_bad_readings_are_rejected_and_the_next_valid_step_is_a_sample(rig):
+    """Issue 13: readings outside [min_range, max_range] (out of range is +-inf, REP 117), broken limits, radiation
+    type, frame or beam, and stamps far in the future or going backwards are each rejected with a reason; the next
+    valid step is a sample. Five readings stamped 2^31-1 s do not stall the node."""
+    rig.publish_step(10, [0.5, 0.6, 0.7, INF, INF])
+    rig.wait_states(1)
+    cases = [dict(range=-1.0), dict(range=100.0), dict(min_range=math.nan), dict(min_range=0.5, max_range=0.1),
+             dict(radiation_type=7), dict(frame_id=''), dict(field_of_view=math.nan), dict(sec=2**31 - 1),
+             dict(sec=5)]
+    for k, case in enumerate(cases):
+        before = rig.node.rejected
+        sec = case.pop('sec', 11 + k)
+        for i in range(5):
+            msg = Range(radiation_type=Range.INFRARED, min_range=0.005, max_range=1.5, range=0.5,
+                        field_of_view=0.3)
+            msg.header.frame_id = SENSOR_NAMES[i]
+            msg.header.stamp.sec = sec
+            for name, value in case.items():
+                if name == 'frame_id':
+                    msg.header.frame_id = value
+                else:
+                    setattr(msg, name, value)
+            rig.ranges[i].publish(msg)
+        assert rig.ros.spin_until(lambda: rig.node.rejected >= before + 5), case
+        rig.command([1.0, 1.0])
+        rig.publish_step(11 + k, [0.5, 0.6, 0.7 + 0.01 * k, INF, INF])
+        state = rig.wait_states(k + 2)
+        assert state.header.stamp.sec == 11 + k and state.samples == k + 2, case
+    assert rig.node.continuous == [True] * len(cases)

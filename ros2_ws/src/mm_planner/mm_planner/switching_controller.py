@@ -16,10 +16,11 @@ from itertools import product
 from typing import Optional
 
 import numpy as np
+from mm_msgs.msg import ManifoldState
 
-from mm_manifold.jacobian import PolynomialJacobianField
-
-SPACE_NONE, SPACE_SENSOR1, SPACE_VIRTUAL, SPACE_SENSOR2 = 0, 1, 2, 3
+# The active spaces are the state message's constants (their one home).
+SPACE_NONE, SPACE_SENSOR1 = ManifoldState.SPACE_NONE, ManifoldState.SPACE_SENSOR1
+SPACE_VIRTUAL, SPACE_SENSOR2 = ManifoldState.SPACE_VIRTUAL_SENSOR1, ManifoldState.SPACE_SENSOR2
 
 
 class SwitchingController:
@@ -119,8 +120,9 @@ class SwitchingController:
 
     def set_goal_from_routes(self, virtual_space, sensor2_goal: np.ndarray,
                              sensor2_noise: Optional[np.ndarray] = None) -> None:
-        """set_goal with the learned virtual space's route to the goal reading and, for the retries, its next-best
-        routes. Raises ValueError when the space cannot map the reading (no overlap with sensor 2 learned)."""
+        """set_goal with the learned model's route to the goal reading (`virtual_space` has goal_route and
+        ranked_routes, e.g. mm_planner.wall_model.WallModel) and, for the retries, its next-best routes. Raises
+        ValueError when the space cannot map the reading (no overlap with sensor 2 learned)."""
         waypoint, coordinates, fallbacks = virtual_space.goal_route(sensor2_goal)
         alternatives = virtual_space.ranked_routes(sensor2_goal, 1 + self.max_retries)[1:]
         self.set_goal(sensor2_goal, coordinates, waypoint, fallbacks, sensor2_noise=sensor2_noise,
@@ -217,7 +219,7 @@ class SwitchingController:
         return u * (self.max_wheel_speed / peak) if peak > self.max_wheel_speed else u
 
     def command(self, space: int, coordinates: Optional[np.ndarray], sensor2: Optional[np.ndarray],
-                virtual_field, sensor2_field: PolynomialJacobianField, sensor1_jacobian: Optional[np.ndarray] = None,
+                virtual_field, sensor2_field, sensor1_jacobian: Optional[np.ndarray] = None,
                 bounds: Optional[np.ndarray] = None, sensor2_box: Optional[np.ndarray] = None,
                 sensor2_measured: bool = True):
         """(wheel command, reached, error in the active space) for the current state. `sensor1_jacobian` is the local

@@ -1,16 +1,13 @@
-"""Switching controller node: explores, waits for the learned model, then reaches goals given as sensor-2 readings.
+"""Switching-controller node: the ROS driver of mm_planner.wall_agent.WallAgent (the wheeled robot's behaviour in the
+wall task; the offline runner mm_bringup.wall_experiment drives the same class).
 
-    ./mm run mm_planner switching_controller --ros-args -p use_sim_time:=true -p exploration_steps:=10000
-
-One wheel command per `wheeled/manifold/state` (the lockstep loop: simulator -> manifold -> controller ->
-simulator). Phases, published on `wheeled/controller/status`: EXPLORING (RandomExplorer: random motion with a
-reflex on the readings and the bumper) -> LEARNING (no commands: the loop pauses while the manifold node fits;
-a model that has not seen sensor 2 during its excursions cannot map any goal, so `exploration_steps // 4` more
-exploration steps follow, until the manifold node's refit has) -> WAITING_FOR_GOAL -> REACHING_SENSOR1 /
-REACHING_VIRTUAL_SENSOR1 / REACHING_SENSOR2 (SwitchingController) -> GOAL_REACHED or FAILED (then waiting again).
-Goals come as mm_msgs/SensorGoal on `wheeled/goal` (latched) or through the `wheeled/set_goal` service. The learned
-model is read from the file the manifold node announces on `wheeled/manifold/model`. Nothing here sees world
-coordinates.
+One wheel command per `wheeled/manifold/state` (the lockstep loop: simulator -> manifold -> controller -> simulator);
+phases (EXPLORING -> LEARNING -> WAITING_FOR_GOAL -> REACHING_* -> GOAL_REACHED / FAILED, see wall_agent) are
+published on `wheeled/controller/status`. Goals come as mm_msgs/SensorGoal on `wheeled/goal` (latched) or through the
+`wheeled/set_goal` service. The learned model arrives as an mm_msgs/SensorManifoldModel message on the latched
+`wheeled/manifold/model` topic: no file, so learner and controller may run on different hosts. Every input is
+checked first; a bad one is dropped with a throttled log line saying why, and the node keeps running. Nothing here
+sees world coordinates.
 """
 from __future__ import annotations
 
@@ -19,68 +16,77 @@ import time
 from typing import Optional
 
 import numpy as np
+from builtin_interfaces.msg import Time
 from mm_common.node_utils import declare, reject_non_finite, run_node
-from mm_manifold.sensor_manifold import SensorManifoldModel
 from mm_msgs.msg import ControllerStatus, ManifoldState, SensorGoal
+from mm_msgs.msg import SensorManifoldModel as ModelMsg
 from mm_msgs.srv import SetSensorGoal
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from builtin_interfaces.msg import Time
-from std_msgs.msg import Bool, Float64MultiArray, String
+from std_msgs.msg import Bool, Float64MultiArray
 
-from mm_planner.exploration import RandomExplorer
-from mm_planner.switching_controller import SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SwitchingController
+from mm_planner.wall_agent import Decision, Goal, Observation, WallAgent
+from mm_planner.wall_model import WallModel
 
 # The lockstep loop is RELIABLE end to end: a lost state or command would stall the loop.
 LOOP_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
-# Goals and the model announcement are latched state.
+# Goals and the model are latched state (TRANSIENT_LOCAL, depth 1): a controller started or restarted after they were
+# published still gets the newest; RELIABLE because a lost model would leave the controller unable to control.
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-PHASE_NAMES = {getattr(ControllerStatus, n): n[len('PHASE_'):] for n in dir(ControllerStatus) if n.startswith('PHASE_')}
-REACHING = {SPACE_SENSOR1: ControllerStatus.PHASE_REACHING_SENSOR1,
-            SPACE_VIRTUAL: ControllerStatus.PHASE_REACHING_VIRTUAL_SENSOR1,
-            SPACE_SENSOR2: ControllerStatus.PHASE_REACHING_SENSOR2}
+SPACES = (ManifoldState.SPACE_NONE, ManifoldState.SPACE_SENSOR1, ManifoldState.SPACE_VIRTUAL_SENSOR1,
+          ManifoldState.SPACE_SENSOR2)
+MAX_STAMP_AHEAD = 60.0       # [s] a state stamped further ahead of this node's clock is refused (a forged stamp)
+
+
+def _ns(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def _readings_problem(name: str, values, length: int) -> Optional[str]:
+    """REP 117 readings: a distance >= 0, +-inf out of range, NaN lost."""
+    values = np.asarray(values, dtype=float)
+    if values.shape != (length,):
+        return f'{name} has {values.size} values, expected {length}'
+    if np.any(np.isfinite(values) & (values < 0)):
+        return f'{name} {list(values)} has a negative distance'
+    return None
 
 
 class SwitchingControllerNode(Node):
     def __init__(self, **node_kwargs):
         super().__init__('switching_controller', **node_kwargs)
-        self.dt = declare(self, 'dt', 0.05, 'Control step = simulator step [s]', min_value=1e-4, max_value=1.0)
-        self.exploration_steps = declare(self, 'exploration_steps', 10000,
-                                         'Random exploration commands before waiting for the model',
-                                         min_value=0, max_value=10_000_000)
-        self.max_wheel_speed = declare(self, 'max_wheel_speed', 6.0, 'Largest wheel command while reaching [rad/s]',
-                                       min_value=0.1, max_value=30.0)
-        self.tolerance = declare(self, 'tolerance', 0.01, 'Goal tolerance per sensor-2 reading [m] when the goal '
-                                 'gives none', min_value=1e-4, max_value=0.2)
-        self.max_reach_steps = declare(self, 'max_reach_steps', 1500, 'Steps before a reach counts as failed',
-                                       min_value=1, max_value=1_000_000)
+        self.dt = declare(self, 'dt', 0.05, 'Control step = simulator step [s]; fixed at start-up',
+                          min_value=1e-4, max_value=1.0, read_only=True)
+        exploration_steps = declare(self, 'exploration_steps', 10000, 'Random exploration commands before waiting '
+                                    'for the model; fixed at start-up', min_value=0, max_value=10_000_000,
+                                    read_only=True)
+        max_wheel_speed = declare(self, 'max_wheel_speed', 6.0, 'Largest wheel command while reaching [rad/s] '
+                                  '(a change applies from the next goal)', min_value=0.1, max_value=30.0)
+        tolerance = declare(self, 'tolerance', 0.01, 'Goal tolerance per sensor-2 reading [m] when the goal gives '
+                            'none (a change applies from the next goal)', min_value=1e-4, max_value=0.2)
+        max_reach_steps = declare(self, 'max_reach_steps', 1500, 'Steps before a reach counts as failed',
+                                  min_value=1, max_value=1_000_000)
         self.bumper_wait = declare(self, 'bumper_wait', 0.2, 'Wall seconds a state waits for its bumper reading '
                                    'while exploring', min_value=0.0, max_value=5.0)
-        seed = declare(self, 'random_seed', 0, 'Seed of the exploration', min_value=0, max_value=2**31 - 1)
+        seed = declare(self, 'random_seed', 0, 'Seed of the exploration; fixed at start-up', min_value=0,
+                       max_value=2**31 - 1, read_only=True)
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.agent = WallAgent(self.dt, exploration_steps, max_wheel_speed, tolerance, max_reach_steps,
+                               random_state=seed)
 
-        self.explorer = RandomExplorer(random_state=seed)
-        self.controller: Optional[SwitchingController] = None
-        self.model: Optional[SensorManifoldModel] = None
-        self.goal: Optional[SensorGoal] = None
-        self.goal_stamp = Time()
-        self.phase = ControllerStatus.PHASE_EXPLORING if self.exploration_steps else ControllerStatus.PHASE_LEARNING
-        self.phase_step = 0
-        self.explored = 0
-        self.exploration_budget = self.exploration_steps    # grows when the learned model is not ready
         self.bumped = False
         # The bumper reading of a step travels on its own topic and may arrive after the state: in lockstep the
-        # first bumper message after a command belongs to the step that command produced, so the explorer (whose
-        # reflex reads it) answers a state only once it came, or after `bumper_wait` wall seconds.
+        # first bumper message after a command belongs to the step that command produced, so while exploring (the
+        # explorer's reflex reads it) a state is answered once it came, or after `bumper_wait` wall seconds.
         self.bumper_since_command = False
+        self.waiting: Optional[Observation] = None
         self.state_wall = 0.0
-        self.pending: Optional[ManifoldState] = None
-        self.state_stamp = None
-        self.last_answered = -1
-        self.reach_steps = 0
-        self.detail = 'started'
+        self.state_stamp: Optional[Time] = None
+        self.newest_ns = -1          # newest state accepted
+        self.last_answered = -1      # newest state answered with a command
+        self.rejected = 0
 
         self.command_pub = self.create_publisher(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands',
                                                  LOOP_QOS)
@@ -88,172 +94,150 @@ class SwitchingControllerNode(Node):
         self.create_subscription(ManifoldState, 'wheeled/manifold/state', self._on_state, LOOP_QOS)
         self.create_subscription(Bool, 'wheeled/bumper', self._on_bumper, LOOP_QOS)
         self.create_timer(0.05, self._on_wall_timer, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self.create_subscription(String, 'wheeled/manifold/model', self._on_model, LATCHED_QOS)
+        self.create_subscription(ModelMsg, 'wheeled/manifold/model', self._on_model, LATCHED_QOS)
         self.create_subscription(SensorGoal, 'wheeled/goal', self._on_goal_topic, LATCHED_QOS)
         self.create_service(SetSensorGoal, 'wheeled/set_goal', self._on_set_goal)
+
+    @property
+    def explored(self) -> int:
+        return self.agent.explored
+
+    @property
+    def phase(self) -> int:
+        return self.agent.phase
 
     def _on_set_parameters(self, params) -> SetParametersResult:
         result = reject_non_finite(params)
         if result.successful:
             for p in params:
-                if p.name in ('tolerance', 'max_reach_steps', 'max_wheel_speed', 'bumper_wait'):
-                    setattr(self, p.name, p.value)
+                if p.name in ('tolerance', 'max_reach_steps', 'max_wheel_speed'):
+                    setattr(self.agent, p.name, p.value)
+                elif p.name == 'bumper_wait':
+                    self.bumper_wait = p.value
         return result
 
-    # --- phase bookkeeping ----------------------------------------------------------------------------------------
-    def _set_phase(self, phase: int, detail: str) -> None:
-        """Enter `phase` (its step count restarts); a new detail in the same phase (another goal) is logged too."""
-        if phase != self.phase or detail != self.detail:
-            self.get_logger().info(f'{PHASE_NAMES[self.phase]} -> {PHASE_NAMES[phase]}: {detail}')
-        if phase != self.phase:
-            self.phase, self.phase_step = phase, 0
-        self.detail = detail
-
-    def _status(self, error: float = math.nan, target=()) -> None:
-        msg = ControllerStatus()
-        # Stamped with the state it answers (the sim clock on /clock may lag behind the state that just arrived).
-        msg.header.stamp = self.state_stamp if self.state_stamp is not None else self.get_clock().now().to_msg()
-        msg.phase, msg.phase_name, msg.detail = self.phase, PHASE_NAMES[self.phase], self.detail
-        msg.error, msg.target, msg.step = float(error), [float(v) for v in target], self.phase_step
-        msg.goal_stamp = self.goal_stamp
-        self.status_pub.publish(msg)
+    def _reject(self, what: str, reason: str) -> None:
+        self.rejected += 1
+        self.get_logger().warn(f'{what} rejected ({self.rejected} inputs so far): {reason}',
+                               throttle_duration_sec=1.0)
 
     # --- inputs ---------------------------------------------------------------------------------------------------
-    def _on_model(self, msg: String) -> None:
-        if not msg.data:
-            self.get_logger().warn('the manifold node keeps its model in memory only (no model_path): cannot control')
-            return
+    def _on_model(self, msg: ModelMsg) -> None:
         try:
-            self.model = SensorManifoldModel.load(msg.data)
+            model = WallModel.from_msg(msg)
+            if not math.isclose(model.dt, self.dt):
+                raise ValueError(f'model dt {model.dt} s != control step {self.dt} s')
         except ValueError as exc:
-            self.get_logger().error(str(exc))
+            self._reject('model', str(exc))
             return
-        self.get_logger().info(f'model loaded from {msg.data}')
-        if not self.model.ready:
-            if self.phase == ControllerStatus.PHASE_LEARNING:
-                extra = max(self.exploration_steps // 4, 1)
-                self.exploration_budget = self.explored + extra
-                self._set_phase(ControllerStatus.PHASE_EXPLORING, f'the model has not seen sensor 2: exploring '
-                                                                  f'{extra} more steps')
-                if self.pending is not None:
-                    self._answer(self.pending)
-        elif self.phase in (ControllerStatus.PHASE_LEARNING, ControllerStatus.PHASE_EXPLORING):
-            skipped = self.phase == ControllerStatus.PHASE_EXPLORING and self.explored < self.exploration_budget
-            self._set_phase(ControllerStatus.PHASE_WAITING_FOR_GOAL,
-                            'a learned model exists: exploration skipped' if skipped else 'model ready')
-            self._start_goal()
-        self._status()
+        self.get_logger().info(f'model received: {model.samples} samples, '
+                               f'{"ready" if model.ready else "cannot map sensor-2 goals yet"}')
+        self._publish(self.agent.step(Observation(model=model)))
 
     def _on_goal_topic(self, msg: SensorGoal) -> None:
-        accepted, reason = self._accept_goal(msg)
+        accepted, reason = self._take_goal(msg)
         if not accepted:
-            self.get_logger().warn(f'goal rejected: {reason}')
+            self._reject('goal', reason)
 
     def _on_set_goal(self, request: SetSensorGoal.Request, response: SetSensorGoal.Response):
-        response.accepted, response.message = self._accept_goal(request.goal)
+        response.accepted, response.message = self._take_goal(request.goal)
         return response
 
-    def _accept_goal(self, goal: SensorGoal):
-        reading = np.asarray(goal.reading, dtype=float)
-        if goal.sensor_group != SensorGoal.SENSOR2 or reading.shape != (2,):
-            return False, 'the goal must be a sensor-2 reading (sensor_group=2, two values)'
-        if not np.all(np.isfinite(reading)) or np.any(reading <= 0):
-            return False, f'goal reading must be positive and finite, got {list(reading)}'
-        if not (goal.tolerance == 0.0 or (math.isfinite(goal.tolerance) and 0 < goal.tolerance < 0.2)):
-            return False, f'tolerance {goal.tolerance} out of (0, 0.2) m'
-        self.goal = goal
-        problem = self._start_goal()
-        self._status()
-        return (False, problem) if problem else (True, 'accepted')
-
-    def _start_goal(self) -> Optional[str]:
-        """Begin reaching once there is both a goal and a model; answer a state that is already waiting. A goal the
-        model cannot map ends FAILED under that goal's stamp (so whoever sent it sees the outcome); returns why."""
-        if self.goal is None or self.model is None or self.phase in (ControllerStatus.PHASE_EXPLORING,
-                                                                     ControllerStatus.PHASE_LEARNING):
-            return None
-        tolerance = self.goal.tolerance or self.tolerance
-        reading = np.asarray(self.goal.reading, dtype=float)
-        self.controller = SwitchingController(self.dt, max_wheel_speed=self.max_wheel_speed, tolerance=tolerance)
-        try:
-            self.controller.set_goal_from_routes(self.model.virtual_, reading, self.model.sensor2_noise_)
-        except ValueError as exc:
-            self.goal_stamp = self.goal.header.stamp
-            self.goal = None
-            self._set_phase(ControllerStatus.PHASE_FAILED, f'cannot map the goal: {exc}')
-            return self.detail
-        self.goal_stamp = self.goal.header.stamp
-        self.goal = None
-        self.reach_steps = 0
-        self._set_phase(ControllerStatus.PHASE_REACHING_SENSOR1, f'goal {list(reading)} (tolerance {tolerance} m)')
-        if self.pending is not None:
-            self._answer(self.pending)
-        return None
+    def _take_goal(self, goal: SensorGoal):
+        if goal.sensor_group != SensorGoal.SENSOR2:
+            return False, f'the goal must be a sensor-2 reading (sensor_group={SensorGoal.SENSOR2})'
+        decision = self.agent.step(Observation(goal=Goal(np.asarray(goal.reading, dtype=float),
+                                                         float(goal.tolerance), goal.header.stamp)))
+        self._publish(decision)
+        return decision.goal_accepted, decision.goal_reason
 
     def _on_bumper(self, msg: Bool) -> None:
         self.bumped = bool(msg.data)
         self.bumper_since_command = True
-        if self.pending is not None and self.phase == ControllerStatus.PHASE_EXPLORING:
-            self._answer(self.pending)
+        if self.waiting is not None:
+            self._step_waiting()
 
     def _on_wall_timer(self) -> None:
         """A state whose bumper reading never came (a lost message) is answered after bumper_wait."""
-        if (self.pending is not None and self.phase == ControllerStatus.PHASE_EXPLORING
-                and time.monotonic() - self.state_wall > self.bumper_wait):
+        if self.waiting is not None and time.monotonic() - self.state_wall > self.bumper_wait:
             self.bumper_since_command = True
-            self._answer(self.pending)
+            self._step_waiting()
+
+    def _state_problem(self, msg: ManifoldState) -> Optional[str]:
+        for name, length in (('sensor1', 3), ('sensor2', 2)):
+            problem = _readings_problem(name, getattr(msg, name), length)
+            if problem:
+                return problem
+        if msg.active_space not in SPACES:
+            return f'unknown active_space {msg.active_space}'
+        for name in ('coordinates', 'sensor2_estimate'):
+            values = np.asarray(getattr(msg, name), dtype=float)
+            if len(values) not in (0, 2):
+                return f'{name} has {len(values)} values, expected 0 or 2'
+            if not np.all(np.isfinite(values)):
+                return f'{name} {list(values)} is not finite'
+        model = self.agent.model
+        if model is not None and len(msg.coordinates):
+            low, high = model.virtual_bounds
+            span = high - low
+            if np.any(np.asarray(msg.coordinates) < low - span) or np.any(np.asarray(msg.coordinates) > high + span):
+                return f'coordinates {list(msg.coordinates)} far outside the learned space {low}..{high}'
+        if model is not None and len(msg.sensor2_estimate):
+            low, high = model.sensor2_range
+            span = high - low
+            if np.any(np.abs(np.asarray(msg.sensor2_estimate) - (low + high) / 2) > 1.5 * span):
+                return f'sensor2_estimate {list(msg.sensor2_estimate)} far outside what sensor 2 reads'
+        needs = {ManifoldState.SPACE_SENSOR1: 'coordinates', ManifoldState.SPACE_VIRTUAL_SENSOR1: 'coordinates',
+                 ManifoldState.SPACE_SENSOR2: 'sensor2_estimate'}.get(msg.active_space)
+        if needs and not len(getattr(msg, needs)):
+            return f'active_space {msg.active_space} without {needs}'
+        now = self.get_clock().now().nanoseconds
+        stamp = _ns(msg.header.stamp)
+        if now > 0 and stamp > now + MAX_STAMP_AHEAD * 1e9:
+            return f'stamp {stamp * 1e-9:.3f} s is more than {MAX_STAMP_AHEAD} s ahead of the clock ({now * 1e-9:.3f} s)'
+        if stamp < self.newest_ns:
+            return f'stamp {stamp * 1e-9:.3f} s goes backwards (newest {self.newest_ns * 1e-9:.3f} s)'
+        return None
 
     def _on_state(self, msg: ManifoldState) -> None:
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        if stamp <= self.last_answered:
+        stamp = _ns(msg.header.stamp)
+        if stamp == self.last_answered:
+            return                   # a re-published step that was already answered
+        problem = self._state_problem(msg)
+        if problem:
+            self._reject('manifold state', problem)
             return
+        self.newest_ns = stamp
         self.state_stamp = msg.header.stamp
-        self.pending = msg
+        self.waiting = Observation(
+            state=True, space=int(msg.active_space),
+            coordinates=np.asarray(msg.coordinates, dtype=float) if len(msg.coordinates) else None,
+            sensor2_estimate=np.asarray(msg.sensor2_estimate, dtype=float) if len(msg.sensor2_estimate) else None,
+            readings=np.array(list(msg.sensor1) + list(msg.sensor2), dtype=float))
         self.state_wall = time.monotonic()
-        if self.phase == ControllerStatus.PHASE_EXPLORING and not self.bumper_since_command:
-            return
-        self._answer(msg)
+        if not (self.agent.needs_bumper and not self.bumper_since_command):
+            self._step_waiting()
 
-    # --- control ------------------------------------------------------------------------------------------------
-    def _answer(self, msg: ManifoldState) -> None:
-        command = None
-        error, target = math.nan, ()
-        if self.phase == ControllerStatus.PHASE_EXPLORING:
-            if self.explored >= self.exploration_budget:
-                self._set_phase(ControllerStatus.PHASE_LEARNING, f'{self.explored} exploration steps done')
-            else:
-                readings = np.array(list(msg.sensor1) + list(msg.sensor2), dtype=float)
-                command = self.explorer.command(readings, self.bumped)
-                self.explored += 1
-        elif self.phase in REACHING.values():
-            command, error, target = self._reach(msg)
-        self.phase_step += 1
-        if command is not None:
-            self.last_answered = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-            self.pending = None
+    # --- output ---------------------------------------------------------------------------------------------------
+    def _step_waiting(self) -> None:
+        observation, self.waiting = self.waiting, None
+        observation.bumped = self.bumped
+        self._publish(self.agent.step(observation))
+
+    def _publish(self, decision: Decision) -> None:
+        for line in decision.log:
+            self.get_logger().info(line)
+        if decision.command is not None:
+            self.last_answered = self.newest_ns
             self.bumper_since_command = False
-            self.command_pub.publish(Float64MultiArray(data=[float(v) for v in command]))
-        self._status(error, target)
-
-    def _reach(self, msg: ManifoldState):
-        m, c = self.model, self.controller
-        space = int(msg.active_space)
-        coords = np.asarray(msg.coordinates, dtype=float) if len(msg.coordinates) else None
-        s2 = np.asarray(msg.sensor2_estimate, dtype=float) if len(msg.sensor2_estimate) else None
-        if space in REACHING:
-            self._set_phase(REACHING[space], f'{PHASE_NAMES[REACHING[space]].lower()} active')
-        J1 = m.regions1_.interpolate(coords) if space == SPACE_SENSOR1 and coords is not None else None
-        u, done, error = c.command(space, coords, s2, m.virtual_.field_, m.field2_, J1, m.virtual_bounds(),
-                                   m.sensor2_box_, sensor2_measured=all(msg.in_range[3:5]))
-        target = c.goal_sensor2 if space == SPACE_SENSOR2 else (c.target if c.target is not None else ())
-        if done:
-            self._set_phase(ControllerStatus.PHASE_GOAL_REACHED, f'sensor-2 error {error:.4f} m')
-            return None, error, target
-        self.reach_steps += 1
-        if self.reach_steps > self.max_reach_steps:
-            self._set_phase(ControllerStatus.PHASE_FAILED, f'not reached within {self.max_reach_steps} steps')
-            return None, error, target
-        return u, error, target
+            self.command_pub.publish(Float64MultiArray(data=[float(v) for v in decision.command]))
+        msg = ControllerStatus()
+        # Stamped with the state it answers (the sim clock on /clock may lag behind the state that just arrived).
+        msg.header.stamp = self.state_stamp if self.state_stamp is not None else self.get_clock().now().to_msg()
+        msg.phase, msg.phase_name, msg.detail = decision.phase, decision.phase_name, decision.detail
+        msg.error, msg.target, msg.step = float(decision.error), list(decision.target), decision.step
+        msg.goal_stamp = decision.goal_stamp if decision.goal_stamp is not None else Time()
+        self.status_pub.publish(msg)
 
 
 def main(args=None):

@@ -11,6 +11,7 @@ from mm_manifold.jacobian import PolynomialJacobianField
 from mm_manifold.sensor_manifold import SensorManifoldModel, find_excursions, group_in_range
 from mm_planner.exploration import SENSOR1, SENSOR2, RandomExplorer
 from mm_planner.switching_controller import SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SwitchingController
+from mm_planner.wall_agent import WallAgent
 from mm_sim.wheeled_model import WheeledRobot
 
 DT = 0.05
@@ -73,8 +74,9 @@ def test_explorer_without_reflex_trigger_does_not_always_back_off():
 
 def test_explorer_commands_stay_within_limits_and_leave_and_reenter_range():
     robot = WheeledRobot(noise_std=0.003, dropout=0.02, random_state=0)    # also copes with noise and lost readings
-    explorer = RandomExplorer(random_state=3)
-    log = explore(robot, 6000, random_state=3, explorer=explorer, dt=DT)
+    agent = WallAgent(DT, exploration_steps=6000, random_state=3)
+    log = explore(robot, 6000, agent=agent, dt=DT)
+    explorer = agent.explorer
     U = log.commands
     assert U.shape == (6000, 2) and np.all(np.isfinite(U))
     # Largest command: a drive at full speed plus the largest arc bend (40 % of the drive speed).
@@ -237,8 +239,7 @@ PAPER_GOAL_POSE = (0.0, 0.25, 0.0)
 
 def test_paper_task_crosses_the_blind_region_and_parks_parallel(robot, model):
     goal_reading = sensor2_goal_reading(robot, PAPER_GOAL_POSE)
-    controller = SwitchingController(DT, tolerance=0.005)
-    episode = run_episode(robot, model, PAPER_START, goal_reading, controller, dt=DT)
+    episode = run_episode(robot, model, PAPER_START, goal_reading, tolerance=0.005, dt=DT)
     ok, error = success(robot, episode, goal_reading, 0.005)
     assert ok, f'final sensor-2 error {error:.4f} m after {len(episode.poses)} steps'
     spaces = np.array(episode.spaces)
@@ -254,7 +255,7 @@ def test_paper_task_crosses_the_blind_region_and_parks_parallel(robot, model):
     assert abs(theta) < 0.15                                       # measured ~0.06 rad
     assert y == pytest.approx(PAPER_GOAL_POSE[1], abs=0.01)
     commands = np.array(episode.commands)
-    assert np.max(np.abs(commands)) <= controller.max_wheel_speed + 1e-9
+    assert np.max(np.abs(commands)) <= SwitchingController(DT).max_wheel_speed + 1e-9
     # A direct path, not a wander: the oracle needs 0.75 m (turn, drive, turn).
     assert episode.path_length() < 2.0 * oracle_path_length(PAPER_START, PAPER_GOAL_POSE)   # measured ~1.4x
 
@@ -270,13 +271,12 @@ def test_random_tasks_mostly_succeed(robot, model):
         assert np.all(np.isfinite(robot.read(start, noisy=False)[list(SENSOR1)]))
         assert not np.all(np.isfinite(robot.read(goal, noisy=False)[list(SENSOR1)]))
         goal_reading = sensor2_goal_reading(robot, goal)
-        controller = SwitchingController(DT, tolerance=tolerance)
-        episode = run_episode(robot, model, start, goal_reading, controller, dt=DT)
+        episode = run_episode(robot, model, start, goal_reading, tolerance=tolerance, dt=DT)
         ok, error = success(robot, episode, goal_reading, tolerance)
         results.append(ok)
         if episode.reached:                   # it never claims the goal falsely (scored on the true reading)
             assert error < tolerance
-        assert np.max(np.abs(episode.commands)) <= controller.max_wheel_speed + 1e-9
+        assert np.max(np.abs(episode.commands)) <= SwitchingController(DT).max_wheel_speed + 1e-9
         if ok:
             ratios.append(episode.path_length() / oracle_path_length(start, goal))
     assert np.mean(results) >= 0.8, f'{sum(results)}/20 tasks reached'

@@ -1,6 +1,8 @@
 """The switching controller node in-process: one command per manifold state while exploring (with the bumper reflex),
-then learning; goals through the set_goal service are validated; a model announced on the latched topic is loaded
-(an unreadable one is reported, not fatal) and a valid goal then starts reaching; bad parameter updates are refused."""
+then learning; goals through the set_goal service are validated; the model message on the latched topic is validated
+(a malformed one is reported, not fatal) and a valid goal then starts reaching; malformed states are rejected and the
+next valid one answered; bad parameter updates are refused; the node and the offline runner command alike."""
+import copy
 import math
 
 import numpy as np
@@ -10,10 +12,11 @@ from mm_msgs.msg import ControllerStatus, ManifoldState, SensorGoal
 from mm_msgs.srv import SetSensorGoal
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import Bool, Float64MultiArray, String
+from mm_msgs.msg import SensorManifoldModel as ModelMsg
+from std_msgs.msg import Bool, Float64MultiArray
 
-from mm_bringup.wall_experiment import explore, sensor2_goal_reading
-from mm_manifold.sensor_manifold import SPACE_SENSOR1, SensorManifoldModel
+from mm_bringup.wall_experiment import PAPER_START, explore, model_message, run_episode, sensor2_goal_reading
+from mm_manifold.sensor_manifold import SPACE_SENSOR1, SensorManifoldModel, StateTracker
 from mm_planner.switching_controller_node import SwitchingControllerNode
 from mm_sim.wheeled_model import WheeledRobot
 
@@ -24,13 +27,20 @@ INF = math.inf
 
 
 @pytest.fixture(scope='module')
-def model_file(tmp_path_factory):
+def learned():
+    """(model message, model) of a 5000-step exploration."""
     log = explore(WheeledRobot(), 5000, random_state=0, dt=DT)
     model = SensorManifoldModel(DT).fit(log.readings, log.commands, log.continuous)
     assert model.ready
-    path = tmp_path_factory.mktemp('controller') / 'wall_model.npz'
-    model.save(path)
-    return path, model
+    return model_message(WheeledRobot(), model), model
+
+
+def blind_message(msg):
+    """The model message of an exploration that never saw sensor 2 during an excursion."""
+    blind = copy.deepcopy(msg)
+    blind.overlap_coordinates = blind.overlap_sensor2 = blind.overlap_exits = blind.overlap_travel = []
+    blind.ready = False
+    return blind
 
 
 class Rig:
@@ -46,7 +56,7 @@ class Rig:
             self.client.create_subscription(ControllerStatus, 'wheeled/controller/status', self.status.append, QOS)
             self.state_pub = self.client.create_publisher(ManifoldState, 'wheeled/manifold/state', QOS)
             self.bumper = self.client.create_publisher(Bool, 'wheeled/bumper', QOS)
-            self.model_pub = self.client.create_publisher(String, 'wheeled/manifold/model', LATCHED)
+            self.model_pub = self.client.create_publisher(ModelMsg, 'wheeled/manifold/model', LATCHED)
             self.set_goal = self.client.create_client(SetSensorGoal, 'wheeled/set_goal')
             pubs = [self.state_pub, self.bumper, self.model_pub]
             assert self.ros.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs)
@@ -106,24 +116,18 @@ def test_explores_one_command_per_state_then_learns():
         rig.ros.close()
 
 
-def test_a_model_that_has_not_seen_sensor2_sends_it_exploring_again(model_file, tmp_path):
+def test_a_model_that_has_not_seen_sensor2_sends_it_exploring_again(learned):
     """Some noisy explorations never see sensor 2 during an excursion: that model cannot map any goal, so the
     controller explores exploration_steps // 4 more steps (the manifold node refits after them) instead of waiting
     for goals it would fail; a model that has seen sensor 2 then ends the exploration."""
-    path, _ = model_file
-    blind = SensorManifoldModel.load(path)
-    blind.virtual_.overlap_coordinates_ = blind.virtual_.overlap_exits_ = np.zeros((0, 2))
-    blind.virtual_.overlap_sensor2_, blind.virtual_.overlap_travel_ = np.zeros((0, 2)), np.zeros(0)
-    assert not blind.ready
-    blind_path = tmp_path / 'blind_model.npz'
-    blind.save(blind_path)
+    msg, _ = learned
     rig = Rig({'exploration_steps': 8, 'random_seed': 1})
     try:
         for k in range(1, 10):
             rig.state(k)
             assert rig.ros.spin_until(lambda: rig.phase() == 'LEARNING' or len(rig.commands) == k)
         assert rig.phase() == 'LEARNING' and len(rig.commands) == 8
-        rig.model_pub.publish(String(data=str(blind_path)))
+        rig.model_pub.publish(blind_message(msg))
         # Exploring again, and the state that was waiting is answered at once.
         assert rig.ros.spin_until(lambda: rig.phase() == 'EXPLORING' and len(rig.commands) == 9)
         assert 'not seen sensor 2' in rig.status[-1].detail
@@ -131,14 +135,14 @@ def test_a_model_that_has_not_seen_sensor2_sends_it_exploring_again(model_file, 
         assert rig.ros.spin_until(lambda: len(rig.commands) == 10)
         rig.state(11)                                              # 2 more steps (8 // 4) spent: learning again
         assert rig.ros.spin_until(lambda: rig.phase() == 'LEARNING')
-        rig.model_pub.publish(String(data=str(path)))
+        rig.model_pub.publish(msg)
         assert rig.ros.spin_until(lambda: rig.phase() == 'WAITING_FOR_GOAL')
         assert len(rig.commands) == 10
     finally:
         rig.ros.close()
 
 
-def test_invalid_goals_are_rejected_with_a_reason():
+def test_invalid_goals_are_rejected_with_a_reason(learned):
     rig = Rig({'exploration_steps': 0})
     try:
         for reading, group, tolerance in (([0.2, 0.2], SensorGoal.SENSOR1, 0.0),       # wrong sensor group
@@ -152,28 +156,43 @@ def test_invalid_goals_are_rejected_with_a_reason():
             response = rig.call(reading, group, tolerance)
             assert not response.accepted, (reading, group, tolerance)
             assert response.message and response.message != 'accepted'
-        assert rig.node.goal is None and rig.node.controller is None
+        assert rig.node.agent.goal is None and rig.node.agent.controller is None
+        # With the model the node knows what sensor 2 can read (its sensors' range, 0.25 m): a goal of 50 m is not.
+        rig.model_pub.publish(learned[0])
+        assert rig.ros.spin_until(lambda: rig.phase() == 'WAITING_FOR_GOAL', timeout=10)
+        response = rig.call([50.0, 50.0])
+        assert not response.accepted and 'outside what sensor 2 reads' in response.message
+        assert rig.call(sensor2_goal_reading(WheeledRobot(), (0.0, 0.2, 0.0))).accepted
     finally:
         rig.ros.close()
 
 
-def test_loads_the_announced_model_and_reaches_for_a_valid_goal(model_file, tmp_path):
-    path, model = model_file
+def test_malformed_model_messages_are_rejected_then_a_valid_one_is_used(learned):
+    msg, model = learned
     rig = Rig({'exploration_steps': 0, 'max_wheel_speed': 4.0})
     try:
         assert rig.node.phase == ControllerStatus.PHASE_LEARNING
-        # An unreadable model file is reported and ignored; the node keeps running.
-        broken = tmp_path / 'broken.npz'
-        broken.write_bytes(path.read_bytes()[:1000])
-        rig.model_pub.publish(String(data=str(broken)))
-        rig.model_pub.publish(String(data=str(path)))
-        assert rig.ros.spin_until(lambda: rig.node.model is not None, timeout=10)
-        assert rig.ros.spin_until(lambda: rig.phase() == 'WAITING_FOR_GOAL')
+        bad = []
+        for field, value in (('format_version', ModelMsg.FORMAT_VERSION + 1), ('dt', 0.1), ('dt', math.nan),
+                             ('field1_theta', msg.field1_theta[:-1]), ('field2_scale', [0.0, 1.0]),
+                             ('grid_nodes', [math.nan] + list(msg.grid_nodes[1:])), ('region_anchors', []),
+                             ('overlap_travel', msg.overlap_travel[1:]), ('sensor2_range', [0.3, 0.1]),
+                             ('virtual_correction', [1e308 * 10] * len(msg.virtual_correction)),
+                             ('jacobian_degree', 9), ('grid_rows', 1)):
+            broken = copy.deepcopy(msg)
+            setattr(broken, field, value)
+            bad.append(broken)
+        for k, broken in enumerate(bad):               # one at a time: the latched topic keeps only the newest
+            rig.model_pub.publish(broken)
+            assert rig.ros.spin_until(lambda: rig.node.rejected == k + 1, timeout=10), k
+        assert rig.node.agent.model is None and rig.phase() in (None, 'LEARNING')
+        rig.model_pub.publish(msg)
+        assert rig.ros.spin_until(lambda: rig.phase() == 'WAITING_FOR_GOAL', timeout=10)
         # A state while waiting: no command yet.
         reading = WheeledRobot().read((0.0, 0.6, -math.pi / 2), noisy=False)
         coordinates = model.grid_.transform(reading[:3][None])[0]
         rig.state(1, reading[:3], reading[3:], SPACE_SENSOR1, coordinates)
-        assert rig.ros.spin_until(lambda: rig.node.pending is not None)
+        assert rig.ros.spin_until(lambda: rig.node.agent.pending is not None)
         assert not rig.commands
         # A valid goal: accepted, and the waiting state is answered at once with a command within the limit.
         goal = sensor2_goal_reading(WheeledRobot(), (0.0, 0.2, 0.0))
@@ -183,8 +202,8 @@ def test_loads_the_announced_model_and_reaches_for_a_valid_goal(model_file, tmp_
         assert rig.ros.spin_until(lambda: rig.phase() == 'REACHING_SENSOR1')
         u = np.array(rig.commands[0].data)
         assert np.all(np.isfinite(u)) and 0 < np.max(np.abs(u)) <= 4.0 + 1e-9
-        assert rig.node.controller.tolerance == 0.005
-        np.testing.assert_allclose(rig.node.controller.goal_sensor2, goal)
+        assert rig.node.agent.controller.tolerance == 0.005
+        np.testing.assert_allclose(rig.node.agent.controller.goal_sensor2, goal)
         # The next state gets the next command.
         rig.state(2, reading[:3], reading[3:], SPACE_SENSOR1, coordinates)
         assert rig.ros.spin_until(lambda: len(rig.commands) == 2)
@@ -192,18 +211,52 @@ def test_loads_the_announced_model_and_reaches_for_a_valid_goal(model_file, tmp_
         rig.ros.close()
 
 
-def test_a_goal_the_model_cannot_map_fails_under_its_own_stamp(model_file):
+def test_malformed_states_are_rejected_and_the_next_valid_one_answered(learned):
+    """Each bad state (issue 13: wrong lengths, NaN / 1e308 coordinates, forged or backward stamps, ...) is dropped
+    with a reason; the node stays alive, never sends a non-finite command, and answers the valid state after it."""
+    msg, model = learned
+    rig = Rig({'exploration_steps': 0})
+    try:
+        rig.model_pub.publish(msg)
+        assert rig.ros.spin_until(lambda: rig.phase() == 'WAITING_FOR_GOAL', timeout=10)
+        assert rig.call(sensor2_goal_reading(WheeledRobot(), (0.0, 0.2, 0.0))).accepted
+        reading = WheeledRobot().read((0.0, 0.6, -math.pi / 2), noisy=False)
+        coordinates = model.grid_.transform(reading[:3][None])[0]
+        sec = 10
+        rig.state(sec, reading[:3], reading[3:], SPACE_SENSOR1, coordinates)
+        assert rig.ros.spin_until(lambda: len(rig.commands) == 1)
+        cases = [dict(coordinates=[1.0, 2.0, 3.0]), dict(coordinates=[math.nan, 1.0]), dict(coordinates=[1e308, 0.0]),
+                 dict(sensor1=[0.5, 0.5]), dict(sensor1=[-1.0, 0.5, 0.5]), dict(space=7),
+                 dict(space=ManifoldState.SPACE_SENSOR2), dict(sec=2**31 - 1), dict(sec=sec - 5)]
+        for k, case in enumerate(cases):
+            before = rig.node.rejected
+            state = ManifoldState(sensor1=[float(v) for v in case.get('sensor1', reading[:3])],
+                                  sensor2=[float(v) for v in reading[3:]], active_space=case.get('space', 1),
+                                  coordinates=[float(v) for v in case.get('coordinates', coordinates)])
+            state.header.stamp.sec = case.get('sec', sec + 1 + k)
+            rig.state_pub.publish(state)
+            assert rig.ros.spin_until(lambda: rig.node.rejected > before), case
+            rig.state(sec + 1 + k, reading[:3], reading[3:], SPACE_SENSOR1, coordinates)
+            assert rig.ros.spin_until(lambda: len(rig.commands) == k + 2), case
+        assert all(np.all(np.isfinite(c.data)) for c in rig.commands)
+    finally:
+        rig.ros.close()
+
+
+def test_a_goal_the_model_cannot_map_fails_under_its_own_stamp(learned):
     """A model that never saw sensor 2 (no overlap) cannot map a sensor-2 goal: the service says why, and the status
     reports FAILED for that goal's stamp - for every such goal, so a client waiting for its outcome is not left
     waiting."""
-    path, _ = model_file
     rig = Rig({'exploration_steps': 0})
     try:
-        rig.model_pub.publish(String(data=str(path)))
+        rig.model_pub.publish(blind_message(learned[0]))
+        # Not ready: the agent explores on (0 // 4 -> 1 more step) instead of waiting for goals it cannot map.
+        assert rig.ros.spin_until(lambda: rig.phase() == 'EXPLORING', timeout=10)
+        rig.model_pub.publish(learned[0])
         assert rig.ros.spin_until(lambda: rig.phase() == 'WAITING_FOR_GOAL')
-        virtual = rig.node.model.virtual_                # as learned from an exploration without sensor 2
-        virtual.overlap_coordinates_ = virtual.overlap_exits_ = virtual.overlap_sensor2_ = np.zeros((0, 2))
-        virtual.overlap_travel_ = np.zeros(0)
+        model = rig.node.agent.model                  # as learned from an exploration without sensor 2
+        model.overlap_coordinates = model.overlap_exits = model.overlap_sensor2 = np.zeros((0, 2))
+        model.overlap_travel = np.zeros(0)
         goal = sensor2_goal_reading(WheeledRobot(), (0.0, 0.2, 0.0))
         for sec in (7, 8):
             response = rig.call(goal, stamp_sec=sec)
@@ -223,10 +276,67 @@ def test_parameter_updates_are_validated():
             assert not node.set_parameters([Parameter(name, value=math.nan)])[0].successful, name
         assert not node.set_parameters([Parameter('max_wheel_speed', value=100.0)])[0].successful   # range
         assert not node.set_parameters([Parameter('max_reach_steps', value=0)])[0].successful
-        assert node.max_wheel_speed == 6.0 and node.tolerance == 0.01
+        # Fixed at start-up (they would have no effect later): read-only.
+        for name, value in (('dt', 0.1), ('exploration_steps', 5), ('random_seed', 3)):
+            assert not node.set_parameters([Parameter(name, value=value)])[0].successful, name
+        assert node.agent.max_wheel_speed == 6.0 and node.agent.tolerance == 0.01
         assert node.set_parameters([Parameter('tolerance', value=0.02)])[0].successful
-        assert node.tolerance == 0.02
+        assert node.agent.tolerance == 0.02
         assert node.set_parameters([Parameter('max_reach_steps', value=200)])[0].successful
-        assert node.max_reach_steps == 200
+        assert node.agent.max_reach_steps == 200
+    finally:
+        rig.ros.close()
+
+
+def test_node_and_offline_runner_command_alike(learned):
+    """One agent, two drivers: on one seed, the node (fed the states the offline runner's loop makes) sends exactly
+    the offline runner's commands, while exploring and while reaching the paper's goal."""
+    msg, model = learned
+    steps = 60
+    offline = explore(WheeledRobot(), steps, random_state=4, dt=DT).commands
+    rig = Rig({'exploration_steps': steps, 'random_seed': 4})
+    try:
+        robot, pose, bumped = WheeledRobot(), PAPER_START, False
+        for k in range(steps):
+            r = robot.read(pose)
+            rig.state(k + 1, r[:3], r[3:])
+            rig.bumper.publish(Bool(data=bumped))
+            assert rig.ros.spin_until(lambda: len(rig.commands) == k + 1)
+            pose, bumped = robot.step(pose, rig.commands[-1].data, DT)
+        np.testing.assert_array_equal([c.data for c in rig.commands], offline)
+    finally:
+        rig.ros.close()
+
+    goal = sensor2_goal_reading(WheeledRobot(), (0.0, 0.25, 0.0))
+    episode = run_episode(WheeledRobot(), model, PAPER_START, goal, tolerance=0.005, dt=DT, max_steps=400)
+    assert len(episode.commands) > 100                           # through sensor 1, blind and sensor-2 control
+    rig = Rig({'exploration_steps': 0})
+    try:
+        rig.model_pub.publish(msg)
+        assert rig.ros.spin_until(lambda: rig.phase() == 'WAITING_FOR_GOAL', timeout=10)
+        assert rig.call(goal, tolerance=0.005).accepted
+        robot, tracker, pose, last = WheeledRobot(), StateTracker(model), PAPER_START, None
+        for k in range(len(episode.commands)):
+            r = robot.read(pose)
+            space, coords, s2, _ = tracker.update(r, last)
+            state = ManifoldState(sensor1=[float(v) for v in r[:3]], sensor2=[float(v) for v in r[3:]],
+                                  active_space=space, coordinates=[] if coords is None else [float(v) for v in coords],
+                                  sensor2_estimate=[] if s2 is None else [float(v) for v in s2])
+            state.header.stamp.sec = k + 1
+            rig.state_pub.publish(state)
+            assert rig.ros.spin_until(lambda: len(rig.commands) == k + 1), f'no command at step {k}'
+            last = np.array(rig.commands[-1].data)
+            pose, _ = robot.step(pose, last, DT)
+        np.testing.assert_array_equal([c.data for c in rig.commands], episode.commands)
+        if not episode.reached:
+            return
+        r = robot.read(pose)                                     # the final state: the goal is reached
+        space, coords, s2, _ = tracker.update(r, last)
+        state = ManifoldState(sensor1=[float(v) for v in r[:3]], sensor2=[float(v) for v in r[3:]],
+                              active_space=space, coordinates=[] if coords is None else [float(v) for v in coords],
+                              sensor2_estimate=[] if s2 is None else [float(v) for v in s2])
+        state.header.stamp.sec = len(episode.commands) + 1
+        rig.state_pub.publish(state)
+        assert rig.ros.spin_until(lambda: rig.phase() == 'GOAL_REACHED')
     finally:
         rig.ros.close()

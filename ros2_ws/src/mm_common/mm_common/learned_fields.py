@@ -1,0 +1,92 @@
+"""Evaluation of the wheeled robot's learned model, shared by the learner (mm_manifold) and the controller
+(mm_planner), which meet through the mm_msgs/SensorManifoldModel message: the polynomial basis of the Jacobian fields,
+the blend of local region Jacobians and the route choice toward a sensor-2 goal. One implementation on both sides, so
+what the controller evaluates from the message is what the learner fitted. Pure numpy, no ROS.
+"""
+from __future__ import annotations
+
+from itertools import combinations_with_replacement
+from math import comb
+from typing import List, Optional, Tuple
+
+import numpy as np
+
+
+def n_polynomial_features(degree: int, dim: int) -> int:
+    """Number of monomials of `dim` variables up to `degree` (the rows of a field's theta)."""
+    return comb(degree + dim, dim)
+
+
+def polynomial_features(Y: np.ndarray, degree: int, center: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """1, y_i, y_i y_j, ... of the standardised y, up to `degree`."""
+    Z = (np.atleast_2d(Y) - center) / scale
+    cols = [np.ones(len(Z))]
+    for d in range(1, degree + 1):
+        for combo in combinations_with_replacement(range(Z.shape[1]), d):
+            cols.append(np.prod(Z[:, combo], axis=1))
+    return np.stack(cols, axis=1)
+
+
+class PolynomialField:
+    """J(y) = sum_f phi_f(y) (theta + correction)[f], evaluated as the learner does (the in-range fit plus the
+    virtual-space correction, each applied separately so the sums round the same way)."""
+
+    def __init__(self, degree: int, theta: np.ndarray, center: np.ndarray, scale: np.ndarray,
+                 correction: Optional[np.ndarray] = None):
+        self.degree, self.theta, self.center, self.scale = degree, theta, center, scale
+        self.correction = correction
+
+    def jacobian(self, Y: np.ndarray) -> np.ndarray:
+        """(n, dy, du) Jacobians at the rows of Y."""
+        P = polynomial_features(Y, self.degree, self.center, self.scale)
+        J = np.einsum('nf,fij->nij', P, self.theta)
+        if self.correction is not None:
+            J = J + np.ones(len(P))[:, None, None] * np.einsum('nf,fij->nij', P, self.correction)
+        return J
+
+    def rates(self, Y: np.ndarray, U: np.ndarray) -> np.ndarray:
+        return np.einsum('nij,nj->ni', self.jacobian(Y), np.atleast_2d(U))
+
+
+def blend_jacobians(anchors: np.ndarray, jacobians: np.ndarray, y: np.ndarray, k: int = 4) -> np.ndarray:
+    """Inverse-distance blend of the k nearest regions' Jacobians at y (regions with a known Jacobian only)."""
+    if not len(anchors):
+        raise ValueError('no region has enough support yet')
+    d = np.linalg.norm(anchors - np.asarray(y, dtype=float), axis=1)
+    order = np.argsort(d)[:k]
+    w = 1.0 / (d[order] + 1e-3)
+    return np.einsum('a,aij->ij', w, jacobians[order]) / w.sum()
+
+
+def ranked_routes(overlap_sensor2: np.ndarray, overlap_coordinates: np.ndarray, overlap_exits: np.ndarray,
+                  overlap_travel: np.ndarray, sensor2_goal: np.ndarray, n_routes: int, route_travel_weight: float,
+                  goal_neighbors: int) -> List[Tuple[np.ndarray, np.ndarray]]:
+    """[(exit point, goal coordinates)] of up to `n_routes` different practised excursions, best first: each metre of
+    sensor-2 reading mismatch may be traded for 1 / route_travel_weight rad of blind wheel rotation saved. The goal
+    coordinates blend the `goal_neighbors` overlap samples of that excursion nearest the goal reading."""
+    if not len(overlap_sensor2):
+        raise ValueError('no overlap with sensor 2 has been observed yet')
+    mismatch = np.linalg.norm(overlap_sensor2 - np.asarray(sensor2_goal, dtype=float), axis=1)
+    cost = mismatch + route_travel_weight * overlap_travel
+    exits, excursion = np.unique(overlap_exits, axis=0, return_inverse=True)
+    excursion = excursion.ravel()
+    best_cost = np.full(len(exits), np.inf)
+    np.minimum.at(best_cost, excursion, cost)
+    routes = []
+    for e in np.argsort(best_cost)[:n_routes]:
+        same = np.flatnonzero(excursion == e)
+        idx = same[np.argsort(mismatch[same])[:goal_neighbors]]
+        w = 1.0 / (mismatch[idx] + 1e-4)
+        routes.append((exits[e], (overlap_coordinates[idx] * w[:, None]).sum(axis=0) / w.sum()))
+    return routes
+
+
+def deeper_fallbacks(overlap_sensor2: np.ndarray, overlap_coordinates: np.ndarray, sensor2_goal: np.ndarray,
+                     n_fallbacks: int = 5) -> np.ndarray:
+    """Virtual coordinates of practised readings nearer the wall than the goal (ordered by closeness to it, spread a
+    little deeper each time): where to aim if the goal's coordinates are reached without sensor 2 in sight."""
+    mismatch = np.linalg.norm(overlap_sensor2 - np.asarray(sensor2_goal, dtype=float), axis=1)
+    deeper = np.flatnonzero(np.all(overlap_sensor2 < sensor2_goal, axis=1))
+    order = deeper[np.argsort(mismatch[deeper])]
+    step = max(1, len(order) // (4 * n_fallbacks))
+    return overlap_coordinates[order[::step][:n_fallbacks]]

@@ -1,0 +1,227 @@
+"""The wheeled robot's behaviour in the wall task (paper Section 2), as one pure class driven step by step: by the
+switching_controller node from ROS messages, and by the offline runner (mm_bringup.wall_experiment) from the
+simulator model, so both run the same code.
+
+Phases (mm_msgs/ControllerStatus): EXPLORING (RandomExplorer: random motion with a reflex on the readings and the
+bumper) -> LEARNING (no commands: the lockstep loop pauses while the learner fits; a model that has not seen sensor 2
+during its excursions cannot map any goal, so `exploration_steps // 4` more exploration steps follow, until the
+learner's refit has) -> WAITING_FOR_GOAL -> REACHING_SENSOR1 / REACHING_VIRTUAL_SENSOR1 / REACHING_SENSOR2
+(SwitchingController, with its retries) -> GOAL_REACHED or FAILED (then waiting again). Nothing here sees world
+coordinates: an observation holds the learner's state of one step, the raw readings and the bumper, and the events
+(a new model, a new goal) that arrived since the last step.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, List, Optional, Tuple
+
+import numpy as np
+from mm_msgs.msg import ControllerStatus, ManifoldState
+
+from mm_planner.exploration import RandomExplorer
+from mm_planner.switching_controller import SwitchingController
+from mm_planner.wall_model import WallModel
+
+PHASE_NAMES = {getattr(ControllerStatus, n): n[len('PHASE_'):] for n in dir(ControllerStatus) if n.startswith('PHASE_')}
+REACHING = {ManifoldState.SPACE_SENSOR1: ControllerStatus.PHASE_REACHING_SENSOR1,
+            ManifoldState.SPACE_VIRTUAL_SENSOR1: ControllerStatus.PHASE_REACHING_VIRTUAL_SENSOR1,
+            ManifoldState.SPACE_SENSOR2: ControllerStatus.PHASE_REACHING_SENSOR2}
+MAX_GOAL_TOLERANCE = 0.2     # [m] a goal's own tolerance must be below this (0: the agent's default)
+
+
+@dataclass
+class Goal:
+    """A sensor-2 reading to reach; `stamp` is opaque (the goal message's header stamp), reported back as is."""
+    reading: np.ndarray
+    tolerance: float = 0.0
+    stamp: Any = None
+
+
+@dataclass
+class Observation:
+    """One step's learner state (absent when the observation only carries events) and the events since the last."""
+    state: bool = False
+    space: int = ManifoldState.SPACE_NONE
+    coordinates: Optional[np.ndarray] = None
+    sensor2_estimate: Optional[np.ndarray] = None
+    readings: Optional[np.ndarray] = None          # (5,) raw: sensor 1 then sensor 2; +-inf out of range, NaN lost
+    bumped: bool = False
+    model: Optional[WallModel] = None
+    goal: Optional[Goal] = None
+
+
+@dataclass
+class Decision:
+    """The command to send (None: none this step) and what the status reports."""
+    command: Optional[np.ndarray]
+    phase: int
+    detail: str
+    step: int
+    goal_stamp: Any
+    error: float = math.nan
+    target: Tuple[float, ...] = ()
+    goal_accepted: Optional[bool] = None
+    goal_reason: str = ''
+    log: List[str] = field(default_factory=list)     # phase transitions, for the driver's log
+
+    @property
+    def phase_name(self) -> str:
+        return PHASE_NAMES[self.phase]
+
+
+class WallAgent:
+    """Hyperparameters: dt [s] of a step, exploration_steps, max_wheel_speed [rad/s], tolerance [m] (when the goal
+    gives none), max_reach_steps, random_state of the exploration."""
+
+    def __init__(self, dt: float, exploration_steps: int = 10000, max_wheel_speed: float = 6.0,
+                 tolerance: float = 0.01, max_reach_steps: int = 1500, random_state: Optional[int] = 0):
+        self.dt = dt
+        self.exploration_steps = exploration_steps
+        self.max_wheel_speed = max_wheel_speed
+        self.tolerance = tolerance
+        self.max_reach_steps = max_reach_steps
+        self.explorer = RandomExplorer(random_state=random_state)
+        self.controller: Optional[SwitchingController] = None
+        self.model: Optional[WallModel] = None
+        self.goal: Optional[Goal] = None
+        self.goal_stamp: Any = None
+        self.phase = ControllerStatus.PHASE_EXPLORING if exploration_steps else ControllerStatus.PHASE_LEARNING
+        self.phase_step = 0
+        self.explored = 0
+        self.exploration_budget = exploration_steps     # grows when the learned model is not ready
+        self.pending: Optional[Observation] = None       # the newest state not answered with a command yet
+        self.reach_steps = 0
+        self.detail = 'started'
+        self._log: List[str] = []
+
+    @property
+    def needs_bumper(self) -> bool:
+        """Exploring: the explorer's reflex reads the bumper, so a state should come with the step's bumper reading."""
+        return self.phase == ControllerStatus.PHASE_EXPLORING
+
+    def step(self, observation: Observation) -> Decision:
+        """Take the events, then answer the observation's state (or, after an event, the state still waiting)."""
+        self._log = []
+        accepted, reason = None, ''
+        if observation.model is not None:
+            self._take_model(observation.model)
+        if observation.goal is not None:
+            accepted, reason = self._take_goal(observation.goal)
+        state = observation if observation.state else self.pending
+        command, error, target = None, math.nan, ()
+        commanding = self.phase == ControllerStatus.PHASE_EXPLORING or self.phase in REACHING.values()
+        if state is not None and (observation.state or commanding):
+            self.pending = state
+            command, error, target = self._answer(state)
+        return Decision(command, self.phase, self.detail, self.phase_step, self.goal_stamp, error, target,
+                        accepted, reason, self._log)
+
+    # --- events -----------------------------------------------------------------------------------------------
+    def _set_phase(self, phase: int, detail: str) -> None:
+        """Enter `phase` (its step count restarts); a new detail in the same phase (another goal) is logged too."""
+        if phase != self.phase or detail != self.detail:
+            self._log.append(f'{PHASE_NAMES[self.phase]} -> {PHASE_NAMES[phase]}: {detail}')
+        if phase != self.phase:
+            self.phase, self.phase_step = phase, 0
+        self.detail = detail
+
+    def _take_model(self, model: WallModel) -> None:
+        self.model = model
+        if not model.ready:
+            if self.phase == ControllerStatus.PHASE_LEARNING:
+                extra = max(self.exploration_steps // 4, 1)
+                self.exploration_budget = self.explored + extra
+                self._set_phase(ControllerStatus.PHASE_EXPLORING, f'the model has not seen sensor 2: exploring '
+                                                                  f'{extra} more steps')
+        elif self.phase in (ControllerStatus.PHASE_LEARNING, ControllerStatus.PHASE_EXPLORING):
+            skipped = self.phase == ControllerStatus.PHASE_EXPLORING and self.explored < self.exploration_budget
+            self._set_phase(ControllerStatus.PHASE_WAITING_FOR_GOAL,
+                            'a learned model exists: exploration skipped' if skipped else 'model ready')
+            self._start_goal()
+
+    def check_goal(self, goal: Goal) -> Optional[str]:
+        """Why a goal cannot be taken (None if it can): a positive finite sensor-2 reading that the sensors can show."""
+        reading = np.asarray(goal.reading, dtype=float)
+        if reading.shape != (2,):
+            return f'the goal must be a sensor-2 reading of two values, got {reading.size}'
+        if not np.all(np.isfinite(reading)) or np.any(reading <= 0):
+            return f'goal reading must be positive and finite, got {list(map(float, reading))}'
+        if not (goal.tolerance == 0.0 or (math.isfinite(goal.tolerance) and 0 < goal.tolerance < MAX_GOAL_TOLERANCE)):
+            return f'tolerance {goal.tolerance} out of (0, {MAX_GOAL_TOLERANCE}) m'
+        if self.model is not None:
+            return self.model.unreadable_goal(reading)
+        return None
+
+    def _take_goal(self, goal: Goal) -> Tuple[bool, str]:
+        problem = self.check_goal(goal)
+        if problem:
+            return False, problem
+        self.goal = goal
+        problem = self._start_goal()
+        return (False, problem) if problem else (True, 'accepted')
+
+    def _start_goal(self) -> Optional[str]:
+        """Begin reaching once there is both a goal and a model. A goal the model cannot map ends FAILED under that
+        goal's stamp (so whoever sent it sees the outcome); returns why."""
+        if self.goal is None or self.model is None or self.phase in (ControllerStatus.PHASE_EXPLORING,
+                                                                     ControllerStatus.PHASE_LEARNING):
+            return None
+        goal, self.goal = self.goal, None
+        self.goal_stamp = goal.stamp
+        reading = np.asarray(goal.reading, dtype=float)
+        problem = self.model.unreadable_goal(reading)
+        tolerance = goal.tolerance or self.tolerance
+        self.controller = SwitchingController(self.dt, max_wheel_speed=self.max_wheel_speed, tolerance=tolerance)
+        if problem is None:
+            try:
+                self.controller.set_goal_from_routes(self.model, reading, self.model.sensor2_noise)
+            except ValueError as exc:
+                problem = f'cannot map the goal: {exc}'
+        if problem:
+            self._set_phase(ControllerStatus.PHASE_FAILED, problem)
+            return problem
+        self.reach_steps = 0
+        self._set_phase(ControllerStatus.PHASE_REACHING_SENSOR1,
+                        f'goal {list(map(float, reading))} (tolerance {tolerance} m)')
+        return None
+
+    # --- control ------------------------------------------------------------------------------------------------
+    def _answer(self, state: Observation):
+        command, error, target = None, math.nan, ()
+        if self.phase == ControllerStatus.PHASE_EXPLORING:
+            if self.explored >= self.exploration_budget:
+                self._set_phase(ControllerStatus.PHASE_LEARNING, f'{self.explored} exploration steps done')
+            else:
+                command = self.explorer.command(state.readings, state.bumped)
+                self.explored += 1
+        elif self.phase in REACHING.values():
+            command, error, target = self._reach(state)
+        self.phase_step += 1
+        if command is not None:
+            if not np.all(np.isfinite(command)):
+                # Never send a non-finite wheel command; standing still keeps the lockstep loop going.
+                self._log.append(f'non-finite command {list(command)} replaced by a stop')
+                command = np.zeros(2)
+            self.pending = None
+        return command, error, target
+
+    def _reach(self, state: Observation):
+        m, c = self.model, self.controller
+        space, coords, s2 = state.space, state.coordinates, state.sensor2_estimate
+        if space in REACHING:
+            self._set_phase(REACHING[space], f'{PHASE_NAMES[REACHING[space]].lower()} active')
+        J1 = m.sensor1_jacobian(coords) if space == ManifoldState.SPACE_SENSOR1 and coords is not None else None
+        measured = bool(np.all(np.isfinite(np.asarray(state.readings, dtype=float)[3:5])))
+        u, done, error = c.command(space, coords, s2, m.virtual_field, m.sensor2_field, J1, m.virtual_bounds,
+                                   m.sensor2_box, sensor2_measured=measured)
+        target = c.goal_sensor2 if space == ManifoldState.SPACE_SENSOR2 else (c.target if c.target is not None else ())
+        target = tuple(float(v) for v in target)
+        if done:
+            self._set_phase(ControllerStatus.PHASE_GOAL_REACHED, f'sensor-2 error {error:.4f} m')
+            return None, error, target
+        self.reach_steps += 1
+        if self.reach_steps > self.max_reach_steps:
+            self._set_phase(ControllerStatus.PHASE_FAILED, f'not reached within {self.max_reach_steps} steps')
+            return None, error, target
+        return u, error, target
