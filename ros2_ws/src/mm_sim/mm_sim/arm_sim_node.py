@@ -8,10 +8,10 @@ Publishes, per simulation step and in this order, all with the stamp of that ste
   /clock, `arm/camera/image_raw` (sensor_msgs/Image rgb8, 400x400), `arm/joint_states` (shoulder_roll,
   shoulder_pitch: position [rad], velocity [rad/s]), `arm/contact` (mm_msgs/Contact: the hand's touch sensor - the hand
   touched the object anywhere along the motion from the previous frame, checked on sub-steps of at most
-  `contact_resolution` rad, and whether it touches it in the frame's pose), and for evaluation only `arm/ground_truth/state` (mm_msgs/ArmGroundTruth: object place,
-  hand-object distance, contact of any part - upper link, forearm, hand - along the motion, the smallest distance and
-  clearance along it, running contact counts since the last placement) and `arm/ground_truth/object_pose`
-  (geometry_msgs/PoseStamped, image pixels, frame `camera`).
+  `contact_resolution` rad, and whether it touches it in the frame's pose), and for evaluation only
+  `arm/ground_truth/state` (mm_msgs/ArmGroundTruth: object place, hand-object distance, contact of any part - upper
+  link, forearm, hand - along the motion, the smallest distance and clearance along it, running contact counts since
+  the last placement) and `arm/ground_truth/object_pose` (geometry_msgs/PoseStamped, image pixels, frame `camera`).
 Consumes `arm/joint_position_controller/commands` (std_msgs/Float64MultiArray, [shoulder_roll, shoulder_pitch]
 target angles [rad]): per step the arm moves straight toward the target, at most `max_joint_speed * dt` rad per joint,
 clipped to the joint limits (see mm_sim.arm_motion). Targets beyond a limit by more than `command_margin`, NaN/inf or
@@ -20,9 +20,11 @@ of the wrong length are rejected with a throttled log line and counted in `comma
 The object (paper 3.1: its place varies independently of the arm): `object_mode` 'fixed' keeps it where it is;
 'every_n_frames' re-places it at random every `object_period_frames` frames (at the start of a step's motion);
 'on_request' moves it only through the `arm/place_object` service (mm_msgs/srv/PlaceObject: an explicit [x, y] or a
-random place), which publishes a new frame at once. Random places come from ArmModel.random_object_position with a
-generator seeded by `placement_seed` (deterministic), away from the arm's current pose. A requested place outside the
-image, out of the hand's reach or on top of the arm is rejected with the reason.
+random place; also accepted in 'every_n_frames', refused in 'fixed'), which publishes a new frame at once (a step of
+its own in which the arm does not move; the ground truth's contact counts restart there). Random places come from
+ArmModel.random_object_position with a generator seeded by `placement_seed` (deterministic), away from the arm's
+current pose. A requested place outside the image, out of the hand's reach or on top of the arm is rejected with the
+reason.
 
 Lockstep (default): the frame of step k is out; one valid command advances exactly one step. Until the next command
 arrives the last step is re-sent (same stamp) every `republish_period` wall seconds, at any step, so a late joiner
@@ -35,7 +37,6 @@ and object place from the seed; `object_position` [x, y] px overrides the place,
 """
 from __future__ import annotations
 
-import math
 from typing import Optional
 
 import numpy as np
