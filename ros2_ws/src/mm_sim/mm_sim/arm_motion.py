@@ -63,11 +63,11 @@ def sweep(model, start: Sequence[float], end: Sequence[float], resolution: float
     a, b = np.asarray(start, dtype=float), np.asarray(end, dtype=float)
     n = max(1, int(np.ceil(float(np.max(np.abs(b - a))) / max(resolution, 1e-6))))
     qs = a + (b - a) * (np.arange(n + 1) / n)[:, None]
-    gaps = model.part_clearances(qs)
-    hand = np.linalg.norm(model.link_points_many(qs)[:, 2] - model.object_position_, axis=1)
-    return Sweep(part_contact=tuple(bool(v) for v in np.any(gaps < 0.0, axis=0)),
-                 min_part_clearance=tuple(float(v) for v in gaps.min(axis=0)),
-                 min_hand_object_distance=float(hand.min()))
+    smallest = model.part_clearances(qs).min(axis=0)
+    # the hand's gap is its centre distance less contact_distance (ArmModel.part_clearances)
+    return Sweep(part_contact=tuple(bool(v < 0.0) for v in smallest),
+                 min_part_clearance=tuple(float(v) for v in smallest),
+                 min_hand_object_distance=float(smallest[2] + model.contact_distance))
 
 
 class JointMotion:
