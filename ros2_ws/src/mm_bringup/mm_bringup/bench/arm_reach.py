@@ -45,7 +45,7 @@ def run(output_dir: Path, quick: bool, placements: Optional[int] = None, explora
         exploration_object_period_frames=object_period_frames)
     results: List[Dict[str, object]] = []
     skipped = []
-    with ProcessGraph(log_dir=Path(output_dir) / 'arm_reach_logs') as graph:
+    with ProcessGraph(log_dir=Path(output_dir) / 'tmp' / 'arm_reach_logs') as graph:      # results/tmp: not kept
         nodes = start_arm_graph(graph, SCENE_SEED, n_explore, object_period_frames)
         driver = ArmGraphDriver('arm_reach_driver', nodes)
         try:
