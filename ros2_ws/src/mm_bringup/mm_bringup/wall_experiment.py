@@ -151,5 +151,40 @@ def random_task(rng: np.random.Generator, robot: WheeledRobot) -> Tuple[tuple, t
             return start, goal
 
 
+def main(argv=None) -> int:
+    """Offline check of the wall task on one exploration: success and median path ratio over random tasks."""
+    import argparse
+    import time
+    parser = argparse.ArgumentParser(description='Section 2 offline: explore, learn, reach random goals (no ROS). '
+                                     'Use exploration and task seeds disjoint from the benchmark (its seeds: 1, 2).')
+    parser.add_argument('--seed', type=int, default=3, help='exploration (and noise) seed')
+    parser.add_argument('--steps', type=int, default=10000, help='exploration steps')
+    parser.add_argument('--tasks', type=int, default=20, help='random tasks')
+    parser.add_argument('--task-seed', type=int, default=103, help='seed of the random tasks')
+    parser.add_argument('--noise', type=float, default=0.0, help='reading noise std as a fraction of each max range '
+                        '(with 5 %% dropped readings when > 0)')
+    parser.add_argument('--tolerance', type=float, default=0.005, help='goal tolerance [m]')
+    args = parser.parse_args(argv)
+    dt, start = 0.05, time.monotonic()
+    robot = WheeledRobot(noise_range_fraction=args.noise, dropout=0.05 if args.noise else 0.0, random_state=args.seed)
+    log = explore(robot, args.steps, random_state=args.seed, dt=dt)
+    model = SensorManifoldModel(dt).fit(log.readings, log.commands, log.continuous)
+    rng = np.random.default_rng(args.task_seed)
+    outcomes, ratios = [], []
+    for _ in range(args.tasks):
+        task_start, goal = random_task(rng, robot)
+        reading = sensor2_goal_reading(robot, goal)
+        episode = run_episode(robot, model, task_start, reading, tolerance=args.tolerance, dt=dt)
+        outcomes.append(success(robot, episode, reading, args.tolerance)[0])
+        ratios.append(episode.path_length() / oracle_path_length(task_start, goal))
+    print(f'exploration seed {args.seed}, {args.tasks} tasks (seed {args.task_seed}), noise {args.noise}: success '
+          f'{np.mean(outcomes):.3f} ({sum(outcomes)}/{args.tasks}), median path ratio {np.median(ratios):.3f} '
+          f'({time.monotonic() - start:.0f} s)')
+    return 0
+
+
 __all__ = ['explore', 'run_episode', 'model_message', 'agent_model', 'oracle_path_length', 'success', 'random_task', 'sensor2_goal_reading',
            'PAPER_START', 'PAPER_GOAL', 'wall_relative_state']
+
+if __name__ == '__main__':
+    raise SystemExit(main())
