@@ -36,8 +36,10 @@ def test_player_replays_the_same_messages_in_order(ros, bag, rate):
     node.create_subscription(Bool, '/wheeled/bumper', lambda data: received.append(('/wheeled/bumper', data)),
                              QOS, raw=True)
     with ProcessGraph(log_dir=bag.parent / 'logs') as graph:
-        player = graph.start('mm_bringup', 'player', {'bag': str(bag), 'rate': rate, 'start_delay': 1.0})
-        assert ros.spin_until(lambda: len(received) == 400, timeout=30), graph.log_tail(player)
+        # start once our subscriptions matched (a fixed delay lost the first messages when discovery was slow)
+        player = graph.start('mm_bringup', 'player', {'bag': str(bag), 'rate': rate, 'start_delay': 30.0,
+                                                      'wait_for_subscribers': 1})
+        assert ros.spin_until(lambda: len(received) == 400, timeout=30), (len(received), graph.log_tail(player))
         assert ros.spin_until(lambda: player.process.poll() is not None, timeout=10)
         assert player.process.returncode == 0
     recorded = [(m.topic, m.data) for m in iter_messages(bag)]

@@ -45,6 +45,10 @@ class Player(Node):
         self.start_delay = declare(self, 'start_delay', 0.5,
                                    'Wall seconds to wait after creating publishers so subscribers can match',
                                    min_value=0.0, max_value=60.0, read_only=True)
+        self.wait_for_subscribers = declare(
+            self, 'wait_for_subscribers', 0, 'Start as soon as every topic to play has this many matched '
+            'subscriptions (still at most start_delay seconds); 0 = always wait start_delay',
+            min_value=0, max_value=1000, read_only=True)
         self.played = 0
         self.problems: List[str] = []
         if not self.bag:
@@ -75,15 +79,18 @@ class Player(Node):
         """Give subscribers `start_delay` to match, play the bag, wait until reliable readers acked.
         True when everything selected was played or a stop signal ended playback early."""
         deadline = time.monotonic() + self.start_delay
-        while time.monotonic() < deadline and not self.stop.is_set():
+        while time.monotonic() < deadline and not self.stop.is_set() and not self._subscribers_ready():
             rclpy.spin_once(self, timeout_sec=0.02)
+        if self.wait_for_subscribers and not self._subscribers_ready():
+            self.get_logger().warn(f'starting without {self.wait_for_subscribers} subscriber(s) on every topic '
+                                   f'after {self.start_delay} s')
         try:
             self.play()
         except BagError as exc:
             self.problems.append(f'playback stopped: {exc}')
             self.get_logger().error(self.problems[-1])
         for pub in self.publishers_by_topic.values():
-            pub.wait_for_all_acked(Duration(seconds=0.2 if self.stop.is_set() else 2.0))
+            pub.wait_for_all_acked(Duration(seconds=0.2 if self.stop.is_set() else 5.0))
         if self.stop.is_set():
             self.get_logger().info(f'stopped after {self.played} of {self.expected} messages from {self.bag}')
             return True
@@ -92,6 +99,10 @@ class Player(Node):
             self.get_logger().error(self.problems[-1])
         self.get_logger().info(f'played {self.played} messages from {self.bag}')
         return not self.problems
+
+    def _subscribers_ready(self) -> bool:
+        return bool(self.wait_for_subscribers) and all(
+            pub.get_subscription_count() >= self.wait_for_subscribers for pub in self.publishers_by_topic.values())
 
     def play(self) -> None:
         first_log = None

@@ -64,5 +64,5 @@ def test_player_parameters_are_read_only_and_a_missing_bag_is_a_clear_error(ros,
     writer.close()
     player = ros.add(Player(context=ros.context, parameter_overrides=[Parameter('bag', value=str(tmp_path / 'bag'))]))
     for name, value in (('bag', 'x'), ('rate', 2.0), ('topics', ['/a']), ('publish_clock', True),
-                        ('start_delay', 0.0)):
+                        ('start_delay', 0.0), ('wait_for_subscribers', 1)):
         assert not player.set_parameters([Parameter(name, value=value)])[0].successful, name
