@@ -84,6 +84,9 @@ class WheeledSim(Node):
         initial_pose = declare(self, 'initial_pose', [0.0, 1.0, -math.pi / 2],
                                'Initial pose [x, y, theta] in the world frame (wall: y = 0); later poses: '
                                'the wheeled/reset service', read_only=True)
+        initial_step = declare(self, 'initial_step', 0, 'Index of the first step (its stamp is initial_step * dt): '
+                               "a restarted simulator continues its predecessor's time", min_value=0,
+                               max_value=2**62, read_only=True)
         wheel_radius = declare(self, 'wheel_radius', 0.02, 'Wheel radius [m]', min_value=1e-4, max_value=1.0,
                                read_only=True)
         wheel_separation = declare(self, 'wheel_separation', 0.04, 'Distance between the wheels [m]',
@@ -121,7 +124,7 @@ class WheeledSim(Node):
                                   noise_fraction)
         self.pose = tuple(float(v) for v in initial_pose)
         self.pose = (self.pose[0], max(self.pose[1], body_radius), self.pose[2])
-        self.step_index = 0
+        self.step_index = initial_step
         self.bumped = self.robot.touching(self.pose)
         self.velocity = (0.0, 0.0)
         self.command = np.zeros(2)

@@ -163,3 +163,14 @@ def test_matched_command_publishers_are_counted(rig):
     assert ros.spin_until(lambda: sim.command_publishers_matched == 1)
     ros.nodes[1].destroy_publisher(cmd)
     assert ros.spin_until(lambda: sim.command_publishers_matched == 0)
+
+
+def test_initial_step_continues_a_predecessors_time():
+    ros = RosHarness()
+    try:
+        sim = ros.add(WheeledSim(context=ros.context, parameter_overrides=[
+            Parameter('initial_step', value=123), Parameter('republish_period', value=5.0)]))
+        assert sim.step_index == 123 and sim.sim_time_ns == round(123 * sim.dt * 1e9)
+        assert not sim.set_parameters([Parameter('initial_step', value=0)])[0].successful
+    finally:
+        ros.close()
