@@ -17,7 +17,7 @@ from typing import Deque, List, Optional, Sequence
 
 import numpy as np
 from mm_common.testing import RosHarness
-from mm_msgs.msg import ControllerStatus, ManifoldState, SensorGoal
+from mm_msgs.msg import ControllerStatus, ManifoldState, SensorGoal, SensorManifoldModel
 from mm_msgs.srv import ResetPose
 from nav_msgs.msg import Odometry
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -76,19 +76,22 @@ class WallGraph:
     """Start the graph (optionally with a recorder already running elsewhere) and run reaching episodes."""
 
     def __init__(self, work_dir: Path, exploration_steps: int = 10000, noise_range_fraction: float = 0.0,
-                 dropout: float = 0.0, model_path: Optional[Path] = None, seed: int = 0,
+                 dropout: float = 0.0, model_path=None, seed: int = 0,
                  graph: Optional[ProcessGraph] = None, dt: float = 0.05, recorder: Optional[str] = None,
                  recorded_topics: Sequence[str] = ()):
         """`recorder`: name of a recorder node already running in `graph`, and `recorded_topics` the topics it must
         have subscribed to before the loop may start. The simulator starts first (it re-publishes its first step until
         a command arrives), then the controller (it only answers states), and the manifold node last, which closes
         the loop; each waits until the recorder subscribes to the topics of the nodes before it, so the bag holds the
-        loop from its first step."""
+        loop from its first step. `model_path`: where the learner keeps its model (default <work_dir>/wall_model.npz;
+        '' = not persisted, as in the shipped sensor_manifold.yaml: the controller gets the model as a message
+        either way, kept here as `model_msg`)."""
         self.work_dir = Path(work_dir)
         self.work_dir.mkdir(parents=True, exist_ok=True)
         self.dt = dt
         self.graph = graph or ProcessGraph(log_dir=self.work_dir / 'logs')
-        model_path = Path(model_path) if model_path else self.work_dir / 'wall_model.npz'
+        learner_path = '' if model_path == '' else str(Path(model_path) if model_path else
+                                                        self.work_dir / 'wall_model.npz')
         self.ros = RosHarness()
         node = self.node = self.ros.node('wall_experimenter')
         self.status: Optional[ControllerStatus] = None
@@ -103,6 +106,9 @@ class WallGraph:
         node.create_subscription(ControllerStatus, 'wheeled/controller/status', self._on_status, LOOP_QOS)
         node.create_subscription(Odometry, 'wheeled/ground_truth/odom', self._on_odom, LOOP_QOS)
         node.create_subscription(ManifoldState, 'wheeled/manifold/state', self._on_state, LOOP_QOS)
+        self.model_msg: Optional[SensorManifoldModel] = None
+        node.create_subscription(SensorManifoldModel, 'wheeled/manifold/model',
+                                 lambda msg: setattr(self, 'model_msg', msg), LATCHED_QOS)
         self.goal_pub = node.create_publisher(SensorGoal, 'wheeled/goal', LATCHED_QOS)
         self.reset_client = node.create_client(ResetPose, 'wheeled/reset')
         self.nodes = []
@@ -116,7 +122,7 @@ class WallGraph:
                                                     'exploration_steps': exploration_steps},
              ['/wheeled/wheel_velocity_controller/commands', '/wheeled/controller/status']),
             ('mm_manifold', 'sensor_manifold', {**sim_time, 'dt': dt, 'learn_after': exploration_steps,
-                                                'model_path': str(model_path)}, []),
+                                                'model_path': learner_path}, []),
         ]
         for package, executable, parameters, published in steps:
             self.nodes.append(self.graph.start(package, executable, parameters))
