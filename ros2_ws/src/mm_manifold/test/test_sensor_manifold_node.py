@@ -274,3 +274,29 @@ def test_bad_readings_are_rejected_and_the_next_valid_step_is_a_sample(rig):
         state = rig.wait_states(k + 2)
         assert state.header.stamp.sec == 11 + k and state.samples == k + 2, case
     assert rig.node.continuous == [True] * len(cases)
+
+
+def test_a_small_refit_never_replaces_a_good_loaded_model(model_file, tmp_path):
+    """Issue 13: with refit_every lowered at runtime, a refit on the 130 samples since a restart must not overwrite
+    the good loaded model (in memory, on the topic or on disk); the node says why and keeps controlling with it."""
+    path, model = model_file
+    target = tmp_path / 'model.npz'
+    target.write_bytes(path.read_bytes())
+    rig = Rig({'model_path': str(target), 'learn_after': 100000})
+    try:
+        live = rig.node.model
+        assert live is not None and live.ready
+        assert rig.node.set_parameters([Parameter('refit_every', value=130)])[0].successful
+        log = explore(WheeledRobot(), 131, random_state=5, dt=DT)
+        for k, (reading, command) in enumerate(zip(log.readings, log.commands)):
+            rig.publish_step(k + 1, reading)
+            rig.wait_states(k + 1)
+            rig.command(command)
+            assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 1)
+        assert rig.ros.spin_until(lambda: rig.node.fitted_samples == 130 and rig.node.fitting is None, timeout=60)
+        assert rig.node.model is live and target.read_bytes() == path.read_bytes()
+        rig.subscribe_model()
+        assert rig.ros.spin_until(lambda: rig.models, timeout=10)
+        assert rig.models[-1].samples == live.n_samples_
+    finally:
+        rig.ros.close()
