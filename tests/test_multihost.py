@@ -5,7 +5,8 @@ learner (sensor_manifold) and the controller (switching_controller). Each side d
 ROS_STATIC_PEERS with ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET; multicast is switched off on the veth link and only UDP is
 allowed (no shared-memory shortcut between processes of one machine), so every message between the sides crosses
 the link. The addresses exist only inside the two namespaces, which have no route anywhere else; they are deleted in a
-finally block. The robot explores, learns, and reaches the paper's task goal; the bag recorded on A then holds every
+finally block. The learner keeps no model file: the controller has the model only from its latched message.
+The robot explores, learns, and reaches the paper's task goal; the bag recorded on A then holds every
 simulator step exactly as often on every sensor topic and /clock (no lost message), and a command per step.
 
 Creating namespaces needs root (CAP_NET_ADMIN/CAP_SYS_ADMIN) and iproute2; elsewhere the test is skipped with the
@@ -133,6 +134,7 @@ def test_learner_and_controller_ran_on_the_other_host(run):
 
 
 def test_paper_task_is_reached_across_hosts(run):
+    assert run['model_files'] == []             # the model travelled as a message, never as a file
     assert run['phase'] == 'GOAL_REACHED', run['detail']
     assert run['final_error'] < TOLERANCE
     print('multihost run:', {k: run[k] for k in ('detail', 'final_heading', 'seconds', 'crossed')})
@@ -221,8 +223,9 @@ def drive(work: Path, namespace_b: str) -> None:
         recorder = graph.start('mm_bringup', 'recorder', {
             'output': str(work / 'bag'), 'discovery_period': 0.05,
             'topics': ['/wheeled/range/.*', COMMANDS, '/clock', '/wheeled/bumper']})
+        # No model file (model_path ''): the controller gets the learned model only as the latched message.
         with WallGraph(work, exploration_steps=EXPLORATION, graph=graph, recorder='recorder',
-                       recorded_topics=RECORDED) as wall:
+                       recorded_topics=RECORDED, model_path='') as wall:
             node_env = {}
             for node in graph.nodes:
                 environ = Path(f'/proc/{node.process.pid}/environ').read_bytes().split(b'\0')
@@ -243,7 +246,7 @@ def drive(work: Path, namespace_b: str) -> None:
         phase=phases.get(episode.phase, str(episode.phase)), detail=episode.detail,
         final_error=float(np.max(np.abs(final - goal))),
         final_heading=math.atan2(math.sin(heading), math.cos(heading)), resets=1,
-        placement=placement, node_env=node_env, seconds=dict(
+        placement=placement, node_env=node_env, model_files=[str(p) for p in work.rglob('*.npz')], seconds=dict(
             start=began - started, explore_and_learn=learned - began, episode=episode.wall_seconds))))
 
 
