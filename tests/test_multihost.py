@@ -64,9 +64,11 @@ def _netns_unavailable() -> str:
     probe = f'mm_probe_{os.getpid()}'
     try:
         _ip('netns', 'add', probe)
+        _ip('netns', 'exec', probe, 'true')          # also needs a mount namespace of its own
     except (subprocess.CalledProcessError, OSError) as exc:
-        return f'cannot create a network namespace here: {getattr(exc, "stderr", exc)}'.strip()
-    _ip('netns', 'del', probe)
+        return f'cannot create or enter a network namespace here: {getattr(exc, "stderr", exc)}'.strip()
+    finally:
+        subprocess.run(['ip', 'netns', 'del', probe], capture_output=True, timeout=30)
     return ''
 
 
