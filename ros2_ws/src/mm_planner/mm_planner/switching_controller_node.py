@@ -168,6 +168,8 @@ class SwitchingControllerNode(Node):
             problem = _readings_problem(name, getattr(msg, name), length)
             if problem:
                 return problem
+        if len(msg.in_range) not in (0, 5):
+            return f'in_range has {len(msg.in_range)} flags, expected 5'
         if msg.active_space not in SPACES:
             return f'unknown active_space {msg.active_space}'
         for name in ('coordinates', 'sensor2_estimate'):

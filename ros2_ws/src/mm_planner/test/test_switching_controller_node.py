@@ -227,12 +227,14 @@ def test_malformed_states_are_rejected_and_the_next_valid_one_answered(learned):
         assert rig.ros.spin_until(lambda: len(rig.commands) == 1)
         cases = [dict(coordinates=[1.0, 2.0, 3.0]), dict(coordinates=[math.nan, 1.0]), dict(coordinates=[1e308, 0.0]),
                  dict(sensor1=[0.5, 0.5]), dict(sensor1=[-1.0, 0.5, 0.5]), dict(space=7),
-                 dict(space=ManifoldState.SPACE_SENSOR2), dict(sec=2**31 - 1), dict(sec=sec - 5)]
+                 dict(space=ManifoldState.SPACE_SENSOR2), dict(sec=2**31 - 1), dict(sec=sec - 5),
+                 dict(in_range=[True, False])]
         for k, case in enumerate(cases):
             before = rig.node.rejected
             state = ManifoldState(sensor1=[float(v) for v in case.get('sensor1', reading[:3])],
                                   sensor2=[float(v) for v in reading[3:]], active_space=case.get('space', 1),
-                                  coordinates=[float(v) for v in case.get('coordinates', coordinates)])
+                                  coordinates=[float(v) for v in case.get('coordinates', coordinates)],
+                                  in_range=case.get('in_range', []))
             state.header.stamp.sec = case.get('sec', sec + 1 + k)
             rig.state_pub.publish(state)
             assert rig.ros.spin_until(lambda: rig.node.rejected > before), case
