@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import array
 import importlib
+import re
 import sys
 from collections import OrderedDict
 from pathlib import Path
@@ -41,11 +42,12 @@ def interface_class(type_name: str):
 # --- message -> YAML -------------------------------------------------------------------------------------------------
 def message_to_ordereddict(msg, no_arr: bool = False, no_str: bool = False) -> OrderedDict:
     """Field name -> plain Python value, in declaration order (nested messages become nested dicts)."""
-    return OrderedDict((name, to_plain(getattr(msg, name), no_arr, no_str))
-                       for name in msg.get_fields_and_field_types())
+    return OrderedDict((name, to_plain(getattr(msg, name), no_arr, no_str, field_type))
+                       for name, field_type in msg.get_fields_and_field_types().items())
 
 
-def to_plain(value, no_arr: bool, no_str: bool):
+def to_plain(value, no_arr: bool, no_str: bool, field_type: str = ''):
+    """A field's value as plain Python; with no_arr/no_str, arrays/strings become ros2cli's placeholders."""
     if hasattr(value, 'get_fields_and_field_types'):
         return message_to_ordereddict(value, no_arr, no_str)
     if isinstance(value, str):
@@ -55,8 +57,8 @@ def to_plain(value, no_arr: bool, no_str: bool):
     if isinstance(value, (list, tuple, array.array)) or type(value).__name__ == 'ndarray':
         items = value.tolist() if hasattr(value, 'tolist') else list(value)
         if no_arr:
-            return '<sequence type: {}, length: {}>'.format(type(items[0]).__name__ if items else 'unknown',
-                                                             len(items))
+            element = re.sub(r'^sequence<|[,>\[].*$', '', field_type) or 'unknown'
+            return f'<sequence type: {element}, length: {len(items)}>'
         return [to_plain(v, no_arr, no_str) for v in items]
     if hasattr(value, 'item'):                  # numpy scalar
         return value.item()
@@ -97,7 +99,7 @@ def set_message_fields(msg, values, now: Optional[Callable[[], object]] = None) 
             raise ValueError(f"{type(msg).__name__} has no field named '{name}' (fields: {', '.join(fields)})")
         slot = msg.SLOT_TYPES[fields.index(name)]
         try:
-            setattr(msg, name, _from_plain(slot, getattr(msg, name), value, now))
+            setattr(msg, name, _from_plain(slot, value, now))
         except ValueError as exc:
             raise ValueError(f"field '{name}': {exc}") from None
         except (AssertionError, TypeError) as exc:
@@ -108,7 +110,7 @@ def _class_of(namespaced: NamespacedType):
     return getattr(importlib.import_module('.'.join(namespaced.namespaces)), namespaced.name)
 
 
-def _from_plain(slot, current, value, now):
+def _from_plain(slot, value, now):
     if isinstance(slot, NamespacedType):
         cls = _class_of(slot)
         if now is not None and value == 'now' and slot.namespaced_name() == ('builtin_interfaces', 'msg', 'Time'):
@@ -121,7 +123,7 @@ def _from_plain(slot, current, value, now):
     if isinstance(slot, AbstractNestedType):
         if not isinstance(value, (list, tuple)):
             raise ValueError(f'expected a list, got {value!r}')
-        return [_from_plain(slot.value_type, None, v, now) for v in value]
+        return [_from_plain(slot.value_type, v, now) for v in value]
     return _coerce(slot, value)
 
 
@@ -138,6 +140,10 @@ def _coerce(slot, value):
     if typename in ('char', 'octet') or 'int' in typename:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ValueError(f'expected an integer, got {value!r}')
+        bits = int(re.sub(r'\D', '', typename) or 8)
+        low, high = (-2 ** (bits - 1), 2 ** (bits - 1) - 1) if typename.startswith('int') else (0, 2 ** bits - 1)
+        if not low <= value <= high:
+            raise ValueError(f'{value} is outside the range of {typename} [{low}, {high}]')
         return bytes([value]) if typename == 'octet' else value
     if not isinstance(value, str):
         raise ValueError(f'expected a string, got {value!r}')

@@ -78,12 +78,6 @@ def _wait_for_endpoints(node: Node, topic: str, timeout: float):
     return (types[0] if types else None), pubs, subs, known
 
 
-def _node_label(endpoint) -> str:
-    if not _name_known(endpoint):
-        return '<unknown: not discovered yet>'
-    return f'{endpoint.node_namespace.rstrip("/")}/{endpoint.node_name}'
-
-
 def _matching_qos(node: Node, topic: str) -> QoSProfile:
     """QoS that matches the topic's publishers (as rosbag2 adapts); best effort while none is known, since a best
     effort subscription matches publishers of either reliability."""
