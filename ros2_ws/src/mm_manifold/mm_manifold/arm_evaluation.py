@@ -1,18 +1,19 @@
 """Collision prediction from rendered arm images, end to end (paper Section 3.5, Tables 1-2). No rclpy here.
 
-Frames come from mm_sim.arm_model: random joint configurations, a share of them drawn around configurations where
-the contact sensor fired (the robot feels contact, so an explorer can revisit it; without this bias contact frames
-are rare). Pipeline: SIFT keypoints -> labelled keypoint vectors -> nearest-neighbour imputation -> LLE (or PCA)
-3-D embedding -> contact region. Everything is fitted on the training frames; the reported rates are on held-out
-frames embedded out of sample. Ground truth (contact, distance) is used only for the labels and the scores.
+Frames come from mm_sim.arm_model with the object re-placed every few frames (moving_object_exploration: the
+paper varies the object's position independently of the arm); the touch-sensor label is the hand's contact.
+Training and test frames come from disjoint placements (different random generators), so every test frame shows
+the object where training never saw it. Pipeline: SIFT keypoints -> labelled keypoint vectors -> label roles from the
+joint readings -> the vector to embed (mm_manifold.arm_learning) -> nearest-neighbour imputation -> LLE (or PCA)
+embedding -> contact region. Everything is fitted on the training frames; the reported rates are on the test frames
+embedded out of sample. Ground truth (contact of any part, distance) is used only for the scores.
 
 Hyperparameters are chosen by 5-fold cross-validation on the training frames only
 (mm_manifold.embedding.select_contact_model): LLE's n_neighbors, the radius (or threshold) of the contact region
-and, for the reported method, the region model itself among the paper's sphere (centre = mean of the contact
-frames), the Mahalanobis ellipsoid and a quadric fitted by logistic regression. In each fold the frames are
-embedded out of sample, as the held-out frames are, so the radius is set for out-of-sample frames. The held-out
-split is touched once, to score the chosen models. PCA goes through the same selection (the baseline is treated
-exactly like LLE).
+and, for the 'best' rows, the region model itself among the paper's sphere (centre = mean of the contact frames),
+the Mahalanobis ellipsoid and a quadric fitted by logistic regression. In each fold the frames are embedded out of
+sample, as the test frames are, so the radius is set for out-of-sample frames. PCA goes through the same selection,
+and two baselines work on the keypoint vector itself without an embedding (raw_vector_baselines).
 """
 from __future__ import annotations
 
@@ -21,8 +22,8 @@ from typing import Dict, Optional
 
 import numpy as np
 
-from mm_manifold.embedding import REGION_MODELS, best_of, confusion, fit_contact_model, select_contact_model
-from mm_manifold.keypoints import KeypointVectorizer
+from mm_manifold.embedding import (REGION_MODELS, ContactSphere, best_of, confusion, fit_contact_model,
+                                   select_contact_model)
 
 
 def sample_exploration_joints(model, n: int, contact_share: float = 0.25, spread: float = 0.08,
@@ -43,82 +44,158 @@ def sample_exploration_joints(model, n: int, contact_share: float = 0.25, spread
     return q[rng.permutation(len(q))]
 
 
-def evaluate_collision_prediction(n_frames: int = 1000, random_state: Optional[int] = 0, test_fraction: float = 0.3,
-                                  contact_share: float = 0.25, n_neighbors_grid=(10, 20, 40), n_components: int = 3,
-                                  vectorizer_params=None, model_params=None, embedding_params=None,
-                                  n_folds: int = 5) -> Dict[str, object]:
-    """Render `n_frames` frames, learn on (1 - test_fraction) of them, score collision prediction on the rest.
+def moving_object_exploration(model, n_frames: int, replace_every: int = 10, revisit_share: float = 0.5,
+                              spread: float = 0.08, rng: Optional[np.random.Generator] = None) -> Dict[str, np.ndarray]:
+    """Exploration frames with the object re-placed every `replace_every` frames (paper 3.1: its position varies
+    independently of the arm), as (joints, object position) per frame with the touch-sensor label and ground truth.
 
-    Returns a dict with the contact share, and per method and region model the held-out confusion (tp, fn, fp, tn,
-    tpr, fpr), the cross-validated choice (region, n_neighbors, C, radius, cv_tpr, cv_fpr) and the Spearman
-    correlation of the region's closeness with the true hand-object distance on the held-out frames, under keys
-    'lle' / 'pca' (region model chosen by cross-validation) and 'lle_sphere', 'lle_ellipsoid', 'lle_quadric',
-    'pca_sphere', ... (each region model with its own cross-validated n_neighbors and radius); timings: render /
-    extraction / vectorising ms per frame, vectoriser fit s, selection s, final fit s.
-    """
+    The arm takes uniform random joint vectors; once the touch sensor has fired since the last re-placement, a
+    share `revisit_share` of the next targets is drawn around (Gaussian, `spread` rad) where it fired - what the
+    robot can do with its own readings to see contact more often. Returns dict(joints (n, 2), object (n, 2),
+    contact (n,) hand touch, any_contact (n,) any arm part overlaps the object, distance (n,) hand-object centre
+    distance [px], placement (n,) index of the placement). Ground truth beyond `contact` is for evaluation only."""
+    rng = rng if rng is not None else np.random.default_rng()
+    if n_frames < 1 or replace_every < 1 or not 0.0 <= revisit_share <= 1.0:
+        raise ValueError('n_frames >= 1, replace_every >= 1 and 0 <= revisit_share <= 1 are required')
+    out = {k: [] for k in ('joints', 'object', 'contact', 'any_contact', 'distance', 'placement')}
+    touched = []
+    for i in range(n_frames):
+        if i % replace_every == 0:
+            model.set_object_position(model.random_object_position(rng))
+            touched = []
+        if touched and rng.random() < revisit_share:
+            q = model.clip_joints(touched[int(rng.integers(len(touched)))] + rng.normal(0.0, spread, 2))
+        else:
+            q = model.sample_joints(1, rng)[0]
+        c = model.in_contact(q)
+        if c:
+            touched.append(q)
+        out['joints'].append(q)
+        out['object'].append(model.object_position_.copy())
+        out['contact'].append(c)
+        out['any_contact'].append(bool(np.any(model.part_clearances(q) < 0.0)))
+        out['distance'].append(model.hand_object_distance(q))
+        out['placement'].append(i // replace_every)
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def render_keypoints(model, joints: np.ndarray, objects: np.ndarray, extractor) -> list:
+    """SIFT keypoints of the frames with the arm at joints[i] and the object at objects[i]."""
+    out = []
+    for q, p in zip(joints, objects):
+        if not np.array_equal(p, model.object_position_):
+            model.set_object_position(p)
+        out.append(extractor(model.render(q)))
+    return out
+
+
+def raw_vector_baselines(X_train: np.ndarray, c_train: np.ndarray, X_test: np.ndarray, c_test: np.ndarray,
+                         n_neighbors_grid=(5, 15, 45), random_state: Optional[int] = 0) -> Dict[str, Dict]:
+    """No embedding: the paper's sphere in the (globally scaled) keypoint vector space itself (centre = mean of the
+    contact vectors, radius by validation on a split of the training frames), and a k-nearest-neighbour vote
+    (k by 5-fold cross-validation on the training frames, balanced: the share of contact neighbours is compared
+    with the training contact share)."""
+    from sklearn.model_selection import StratifiedKFold
+    from sklearn.neighbors import NearestNeighbors
+    mean = X_train.mean(0)
+    scale = max(float(np.sqrt(np.mean(X_train.std(0) ** 2))), 1e-9)
+    Z, Zt = (X_train - mean) / scale, (X_test - mean) / scale
+    sphere = ContactSphere(random_state=random_state).fit(Z, c_train)
+    out = dict(raw_sphere=dict(confusion(sphere.predict(Zt), c_test), radius=float(sphere.radius_)))
+    prior = float(np.mean(c_train))
+
+    def vote(Zfit, cfit, Zq, k):
+        nb = NearestNeighbors(n_neighbors=k).fit(Zfit).kneighbors(Zq, return_distance=False)
+        return cfit[nb].mean(1) >= prior
+
+    best_k, best_j = n_neighbors_grid[0], -np.inf
+    folds = StratifiedKFold(5, shuffle=True, random_state=random_state)
+    for k in n_neighbors_grid:
+        pred = np.zeros(len(c_train), bool)
+        for tr, va in folds.split(Z, c_train):
+            pred[va] = vote(Z[tr], c_train[tr], Z[va], k)
+        cv = confusion(pred, c_train)
+        if cv['tpr'] - cv['fpr'] > best_j:
+            best_k, best_j = k, cv['tpr'] - cv['fpr']
+    out['raw_knn'] = dict(confusion(vote(Z, c_train, Zt, best_k), c_test), n_neighbors=int(best_k))
+    return out
+
+
+def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_seed: int = 0,
+                                  train_seed: int = 1, test_seed: int = 2, replace_every: int = 10,
+                                  learner_params=None, n_neighbors_grid=(10, 20, 40),
+                                  extractor=None) -> Dict[str, object]:
+    """Learn from moving-object exploration frames (placements drawn with `train_seed`), score collision
+    prediction on frames of other placements (`test_seed`): never seen in training. Same frames for every method.
+
+    The keypoint vectors (labels, roles, representation) come from an ArmStateLearner fitted on the training frames
+    (`learner_params`); then for LLE and PCA alike, n_neighbors (LLE), the region model and its radius / threshold
+    are chosen by 5-fold cross-validation on the training frames (select_contact_model) and the held-out frames are
+    embedded out of sample. Keys 'lle_sphere' / 'pca_sphere' (the paper's sphere), 'lle_best' / 'pca_best' (the
+    region model with the best cross-validated TPR - FPR), one per region model ('lle_ellipsoid', ...), and the
+    no-embedding baselines 'raw_sphere', 'raw_knn'; each a confusion dict (tp, fn, fp, tn, tpr, fpr) with the
+    chosen hyperparameters and the Spearman of the region's closeness with the true distance. Also returns the
+    learner and the test data (for the figures), class balance and timings."""
     from scipy.stats import spearmanr
+    from mm_manifold.arm_learning import ArmStateLearner
+    from mm_manifold.keypoints import KeypointExtractor
     from mm_sim.arm_model import ArmModel
 
-    rng = np.random.default_rng(random_state)
-    model = ArmModel(random_state=random_state, **(model_params or {}))
-    joints = sample_exploration_joints(model, n_frames, contact_share=contact_share, rng=rng)
-    contact = np.array([model.in_contact(q) for q in joints])
-    distance = np.array([model.hand_object_distance(q) for q in joints])
-
+    model = ArmModel(random_state=scene_seed)
+    extractor = extractor or KeypointExtractor()
+    train = moving_object_exploration(model, n_train, replace_every, rng=np.random.default_rng(train_seed))
+    test = moving_object_exploration(model, n_test, replace_every, rng=np.random.default_rng(test_seed))
     t0 = time.perf_counter()
-    frames = [model.render(q) for q in joints]
-    render_ms = 1e3 * (time.perf_counter() - t0) / n_frames
-
-    vec = KeypointVectorizer(random_state=random_state, **(vectorizer_params or {}))
+    kps_train = render_keypoints(model, train['joints'], train['object'], extractor)
+    kps_test = render_keypoints(model, test['joints'], test['object'], extractor)
+    frames_ms = 1e3 * (time.perf_counter() - t0) / (n_train + n_test)
     t0 = time.perf_counter()
-    kps = [vec.extract(f) for f in frames]
-    extract_ms = 1e3 * (time.perf_counter() - t0) / n_frames
-
-    n_test = int(round(test_fraction * n_frames))
-    test = np.zeros(n_frames, bool)
-    test[rng.choice(n_frames, n_test, replace=False)] = True
-    train_idx, test_idx = np.flatnonzero(~test), np.flatnonzero(test)
-
+    learner = ArmStateLearner(**(learner_params or {})).fit(kps_train, train['joints'], train['contact'])
+    fit_s = time.perf_counter() - t0
+    X, c = learner.train_vectors_, train['contact']
     t0 = time.perf_counter()
-    vec.fit([kps[i] for i in train_idx])
-    vec_fit_s = time.perf_counter() - t0
-    X_train = vec.fill_missing(vec.training_vectors_)
-    t0 = time.perf_counter()
-    X_test_raw = vec.transform([kps[i] for i in test_idx])
-    X_test = vec.fill_missing(X_test_raw)
-    vectorize_ms = 1e3 * (time.perf_counter() - t0) / max(len(test_idx), 1)
-
+    X_test = learner.frame_vectors(kps_test)
+    vector_ms = 1e3 * (time.perf_counter() - t0) / n_test
+    c_test, d_test = test['contact'], test['distance']
+    gap = np.min(np.linalg.norm(test['object'][:, None] - np.unique(train['object'], axis=0)[None], axis=2), 1)
+    roles = np.bincount(learner.label_roles_, minlength=4)
     result: Dict[str, object] = dict(
-        n_frames=n_frames, n_train=len(train_idx), n_test=len(test_idx), contact_share=float(contact.mean()),
-        n_labels=int(vec.n_labels_), observed_share=float(np.isfinite(X_test_raw).mean()),
-        keypoints_per_frame=float(np.mean([len(k) for k in kps])), render_ms=render_ms, extract_ms=extract_ms,
-        vectorize_ms=vectorize_ms, vectorizer_fit_s=vec_fit_s)
+        n_train=n_train, n_test=n_test, replace_every=replace_every, scene_seed=scene_seed, train_seed=train_seed,
+        test_seed=test_seed, train_placements=int(train['placement'].max() + 1),
+        test_placements=int(test['placement'].max() + 1), train_contact=int(c.sum()), test_contact=int(c_test.sum()),
+        train_contact_share=float(c.mean()), test_contact_share=float(c_test.mean()),
+        test_object_to_nearest_training_placement_px=dict(min=float(gap.min()), median=float(np.median(gap))),
+        n_labels=int(learner.vectorizer_.n_labels_), label_roles=dict(static=int(roles[0]), self=int(roles[1]),
+                                                                      external=int(roles[2]), unclear=int(roles[3])),
+        representation=learner.representation, lle_method=learner.lle_method, n_components=learner.n_components,
+        vector_width=int(X.shape[1]), frames_ms=frames_ms, learner_fit_s=fit_s, vectorize_ms=vector_ms)
     for method in ('lle', 'pca'):
         t0 = time.perf_counter()
-        sel = select_contact_model(X_train, contact[train_idx], method=method, n_components=n_components,
-                                   n_neighbors_grid=n_neighbors_grid, n_folds=n_folds,
-                                   embedding_params=embedding_params, random_state=random_state)
+        sel = select_contact_model(X, c, method, learner.n_components, n_neighbors_grid,
+                                   embedding_params=learner._embedding_params(method),
+                                   random_state=learner.random_state)
         select_s = time.perf_counter() - t0
-        for key, cand in [(method, sel['best'])] + [(f'{method}_{m}', best_of(sel, m)) for m in REGION_MODELS]:
-            t0 = time.perf_counter()
-            emb, region = fit_contact_model(X_train, contact[train_idx], cand, method=method,
-                                            n_components=n_components, embedding_params=embedding_params,
-                                            random_state=random_state)
-            fit_s = time.perf_counter() - t0
+        for key, cand in [(f'{method}_best', sel['best'])] + [(f'{method}_{m}', best_of(sel, m))
+                                                               for m in REGION_MODELS]:
+            emb, region = fit_contact_model(X, c, cand, method, learner.n_components,
+                                            learner._embedding_params(method), learner.random_state)
             Y_test = emb.transform(X_test)
-            c = confusion(region.predict(Y_test), contact[test_idx])
-            rho = spearmanr(region.closeness(Y_test), distance[test_idx])[0]
-            result[key] = dict(c, region=cand['model'], n_neighbors=cand['n_neighbors'], C=cand['C'],
+            conf = confusion(region.predict(Y_test), c_test)
+            rho = spearmanr(region.closeness(Y_test), d_test)[0]
+            result[key] = dict(conf, region=cand['model'], n_neighbors=cand['n_neighbors'], C=cand['C'],
                                radius=float(region.radius_) if hasattr(region, 'radius_') else None,
-                               relative_radius=-cand['threshold'] if cand['model'] != 'quadric' else None,
                                threshold=cand['threshold'], cv_tpr=cand['cv_tpr'], cv_fpr=cand['cv_fpr'],
-                               fit_s=fit_s, select_s=select_s, closeness_distance_spearman=float(rho))
+                               select_s=select_s, closeness_distance_spearman=float(rho))
+            if key == 'lle_sphere':
+                result['_lle_sphere_model'] = (emb, region, Y_test)
         result[f'{method}_cv_candidates'] = sel['candidates']
+    result.update(raw_vector_baselines(X, c, X_test, c_test, random_state=learner.random_state))
+    result['_learner'], result['_test'], result['_kps_test'], result['_model'] = learner, test, kps_test, model
     return result
 
 
-if __name__ == '__main__':      # python -m mm_manifold.arm_evaluation [n_frames] [seed]
+if __name__ == '__main__':      # python -m mm_manifold.arm_evaluation
     import json
-    import sys
-    args = [int(a) for a in sys.argv[1:3]]
-    print(json.dumps(evaluate_collision_prediction(*args), indent=2))
+    ev = evaluate_collision_prediction()
+    print(json.dumps({k: v for k, v in ev.items() if not k.startswith('_') and not k.endswith('candidates')},
+                     indent=1, default=str))

@@ -18,13 +18,33 @@ that contains their joint angles; a cell holding fewer than `cell_min_frames` fr
 distance in units of the cell size) up to that number, so sparsely explored cells still get a prediction. The cell's
 closeness is the largest closeness of those frames (the most contact-like view seen there). The planner uses it to
 keep clear of the region (mm_planner.value_iteration.clearance_rewards): a cell the object only partly covers often
-has no contact frame and too few frames near the region to be marked, but its closeness is still high.
+has no contact frame and too few frames near the region to be marked, but its closeness is still high. That map is
+only meaningful while the object stayed put during exploration.
+
+The object moves between placements (paper 3.1: its position "differed irrelevantly to the configuration of the robot
+arm"), so the learner also learns which keypoint labels are the robot's own: a label whose image position the joint
+readings predict (linear regression on the products of cos / sin of each joint, which spans the image position of
+any point on a chain of revolute joints seen by an orthographic camera; R^2 >= `self_r2`) moves with the arm; a
+label that moves but is not predicted by the joints (R^2 <= `external_r2`) belongs to something else that moves
+(the object); labels that never move are background. Nothing tells the learner which label is which.
+`representation='relative'` (default) embeds the spatial relation the paper asks for: the positions of the robot's
+own labels relative to where the external labels are (their median displacement from their mean training position);
+'absolute' embeds the raw labelled positions (the paper's vector). External labels hidden in a frame are taken from
+the `recent_frames` frames before it.
+
+`predict_collision_map(frame, recent)` plans before moving, for an object placement never seen (the paper's
+"prediction of robot's hand in the image space"): for a fine lattice of joint vectors over the grid it synthesises
+the keypoint vector the camera would see there - the robot's labels where the joint regression puts them, the
+others as seen in the current frame (hidden ones from the recent frames) - embeds it out of sample and applies the
+contact region. A cell is marked as collision when any lattice point at its centre or on the moves to its
+neighbours' centres is predicted in contact.
 """
 from __future__ import annotations
 
 import json
 import os
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Dict, Optional, Sequence
 
@@ -39,11 +59,13 @@ from mm_manifold.embedding import (REGION_MODELS, ContactQuadric, ContactSphere,
                                    quadratic_features, select_contact_model)
 from mm_manifold.keypoints import FrameKeypoints, KeypointVectorizer, MeanImputer, NearestImputer
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+REPRESENTATIONS = ('relative', 'absolute')
+STATIC, SELF, EXTERNAL, UNCLEAR = 0, 1, 2, 3     # label roles
 DEFAULT_JOINT_LIMITS = ((-3.2, -0.8), (0.0, 2.2))
 _VECTORIZER_PARAMS = ('n_labels', 'max_features', 'scale', 'match_ratio', 'max_pixel_shift', 'n_frame_neighbors',
                       'min_frame_fraction', 'exemplar_spacing', 'imputation', 'n_impute_neighbors', 'max_fit_frames',
-                      'random_state')
+                      'random_state', 'global_match_ratio')
 
 
 class ModelFileError(RuntimeError):
@@ -84,23 +106,89 @@ def cell_map(joints: np.ndarray, predicted: np.ndarray, closeness: np.ndarray, j
     return collision, close
 
 
+def cross_max(hit: np.ndarray, value: np.ndarray, shape, resolution: int):
+    """Per grid cell, over the lattice points of its centre row and column reaching to the neighbours' centres
+    (where the arm goes when it stands in the cell or moves to a neighbour): any `hit` (bool) and the largest
+    `value`. The lattice has `resolution` points per cell side, edges included ((rows * res + 1, cols * res + 1))."""
+    rows, cols = shape
+    s, h = int(resolution), int(resolution) // 2
+    if hit.shape != (rows * s + 1, cols * s + 1) or value.shape != hit.shape:
+        raise ValueError('lattice does not match the grid shape and resolution')
+    out_hit = np.zeros((rows, cols), bool)
+    out_val = np.full((rows, cols), -np.inf)
+    for r in range(rows):
+        for c in range(cols):
+            i, j = r * s + h, c * s + h
+            i0, i1 = max(i - s, 0), min(i + s, rows * s)
+            j0, j1 = max(j - s, 0), min(j + s, cols * s)
+            cross_hit = np.r_[hit[i, j0:j1 + 1], hit[i0:i1 + 1, j]]
+            cross_val = np.r_[value[i, j0:j1 + 1], value[i0:i1 + 1, j]]
+            out_hit[r, c] = cross_hit.any()
+            out_val[r, c] = cross_val.max()
+    return out_hit, out_val
+
+
+def joint_features(joints: np.ndarray) -> np.ndarray:
+    """(n, 3^d) products of (1, cos q_j, sin q_j) over the d joints: the image position of a point on a chain of
+    revolute joints (orthographic view) is linear in these, whatever the link lengths."""
+    q = np.atleast_2d(np.asarray(joints, dtype=float))
+    basis = [np.ones(len(q))]
+    for j in range(q.shape[1]):
+        basis = [b * f for b in basis for f in (np.ones(len(q)), np.cos(q[:, j]), np.sin(q[:, j]))]
+    return np.stack(basis, 1)
+
+
+def label_roles(raw: np.ndarray, joints: np.ndarray, min_motion: float = 3.0, self_r2: float = 0.9,
+                external_r2: float = 0.3, min_frames: int = 20):
+    """Role of each keypoint label (STATIC, SELF, EXTERNAL, UNCLEAR) from raw labelled positions (n, 2L, NaN where
+    unseen) and the joint readings: returns (roles (L,), joint regression coefficients (L, 3^d, 2), R^2 (L,),
+    motion (L,) = RMS distance of the label from its mean position [px])."""
+    n_labels = raw.shape[1] // 2
+    P = raw.reshape(len(raw), n_labels, 2)
+    phi = joint_features(joints)
+    roles = np.full(n_labels, UNCLEAR, int)
+    coef = np.zeros((n_labels, phi.shape[1], 2))
+    r2 = np.zeros(n_labels)
+    motion = np.zeros(n_labels)
+    for label in range(n_labels):
+        seen = np.isfinite(P[:, label, 0])
+        if seen.sum() < max(min_frames, phi.shape[1] + 2):
+            continue
+        Y = P[seen, label]
+        spread = ((Y - Y.mean(0)) ** 2).sum()
+        motion[label] = float(np.sqrt(spread / len(Y)))
+        if motion[label] < min_motion:
+            roles[label] = STATIC
+            continue
+        coef[label] = np.linalg.lstsq(phi[seen], Y, rcond=None)[0]
+        r2[label] = 1.0 - float(((Y - phi[seen] @ coef[label]) ** 2).sum()) / max(spread, 1e-12)
+        roles[label] = SELF if r2[label] >= self_r2 else EXTERNAL if r2[label] <= external_r2 else UNCLEAR
+    return roles, coef, r2, motion
+
+
 class ArmStateLearner:
     """Learn the arm's image state from frames and predict collisions (module docstring).
 
     Parameters: n_components (LLE and PCA dimensions), n_neighbors (LLE), lle_method, region ('auto', or one of
     'sphere' (the paper's), 'ellipsoid', 'quadric'), grid_shape (rows, cols), joint_limits, cell_min_frames,
     cell_collision_fraction, map_margin, vectorizer_params (dict for KeypointVectorizer), random_state, n_folds
-    (cross-validation of the region).
-    Learned attributes: vectorizer_, lle_, pca_, region_ and pca_region_ (ContactSphere or ContactQuadric),
-    selection_ and pca_selection_ (the cross-validated choice: model, C, threshold, cv_tpr, cv_fpr),
-    train_vectors_ (imputed), train_joints_, train_contact_, train_stamps_ (int ns, or -1), train_predicted_ and
-    train_closeness_ (LLE region, in-sample), collision_map_ (rows, cols) bool, closeness_map_ (rows, cols).
+    (cross-validation of the region), representation ('relative' or 'absolute'), self_r2 and external_r2 (label
+    roles), min_motion [px] (below: a static label), recent_frames (how many preceding frames may stand in for a
+    hidden external label), map_resolution (lattice points per cell side in predict_collision_map; even).
+    Learned attributes: vectorizer_, label_roles_, joint_coef_ (joint regression of every label), label_r2_,
+    label_motion_, label_mean_ (mean training position of every label), lle_, pca_, region_ and
+    pca_region_ (ContactSphere or ContactQuadric), selection_ and pca_selection_ (the cross-validated choice: model, C,
+    threshold, cv_tpr, cv_fpr), imputer_ (for the embedded vectors), train_vectors_ (imputed), train_joints_,
+    train_contact_, train_stamps_ (int ns, or -1), train_predicted_ and train_closeness_ (LLE region, in-sample),
+    collision_map_ (rows, cols) bool and closeness_map_ (rows, cols) over the exploration frames.
     """
 
-    def __init__(self, n_components: int = 3, n_neighbors: int = 20, lle_method: str = 'modified',
+    def __init__(self, n_components: int = 3, n_neighbors: int = 20, lle_method: str = 'standard',
                  region: str = 'auto', grid_shape=(8, 12), joint_limits=DEFAULT_JOINT_LIMITS,
                  cell_min_frames: int = 3, cell_collision_fraction: float = 0.1, map_margin: float = 0.1,
-                 vectorizer_params: Optional[Dict] = None, random_state: Optional[int] = 0, n_folds: int = 5):
+                 vectorizer_params: Optional[Dict] = None, random_state: Optional[int] = 0, n_folds: int = 5,
+                 representation: str = 'relative', self_r2: float = 0.9, external_r2: float = 0.3,
+                 min_motion: float = 10.0, recent_frames: int = 5, map_resolution: int = 4):
         lim = np.asarray(joint_limits, dtype=float)
         if lim.shape != (2, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
             raise ValueError('joint_limits must be ((lo0, hi0), (lo1, hi1)) with finite lo < hi')
@@ -112,6 +200,12 @@ class ArmStateLearner:
             raise ValueError(f"region must be 'auto' or one of {REGION_MODELS}")
         if n_folds < 2:
             raise ValueError('n_folds must be >= 2')
+        if representation not in REPRESENTATIONS:
+            raise ValueError(f'representation must be one of {REPRESENTATIONS}')
+        if not 0.0 <= external_r2 < self_r2 <= 1.0 or min_motion < 0 or recent_frames < 0:
+            raise ValueError('0 <= external_r2 < self_r2 <= 1, min_motion >= 0 and recent_frames >= 0 are required')
+        if map_resolution < 2 or map_resolution % 2:
+            raise ValueError('map_resolution must be even and >= 2 (the lattice must hold the cell centres)')
         unknown = set(vectorizer_params or {}) - set(_VECTORIZER_PARAMS)
         if unknown:
             raise ValueError(f'unknown vectorizer parameters: {sorted(unknown)}')
@@ -129,9 +223,27 @@ class ArmStateLearner:
         self.vectorizer_params = dict(vectorizer_params or {})
         self.random_state = random_state
         self.n_folds = int(n_folds)
+        self.representation = representation
+        self.self_r2 = float(self_r2)
+        self.external_r2 = float(external_r2)
+        self.min_motion = float(min_motion)
+        self.recent_frames = int(recent_frames)
+        self.map_resolution = int(map_resolution)
+
+    def get_params(self) -> Dict[str, object]:
+        """The constructor's parameters (JSON-able), as saved with the model."""
+        return dict(n_components=self.n_components, n_neighbors=self.n_neighbors, lle_method=self.lle_method,
+                    region=self.region, grid_shape=list(self.grid_shape), joint_limits=self.joint_limits.tolist(),
+                    cell_min_frames=self.cell_min_frames, cell_collision_fraction=self.cell_collision_fraction,
+                    map_margin=self.map_margin, random_state=self.random_state, n_folds=self.n_folds,
+                    representation=self.representation, self_r2=self.self_r2, external_r2=self.external_r2,
+                    min_motion=self.min_motion, recent_frames=self.recent_frames,
+                    map_resolution=self.map_resolution)
 
     # --- fitting ------------------------------------------------------------------------------------------
     def fit(self, keypoints: Sequence[FrameKeypoints], joints, contact, stamps=None) -> 'ArmStateLearner':
+        """Learn from exploration frames in the order they were taken (a hidden external label is taken from the
+        frames before it): SIFT keypoints, joint readings and touch-sensor readings per frame."""
         joints = np.asarray(joints, dtype=float).reshape(-1, 2)
         contact = np.asarray(contact, dtype=bool).ravel()
         if not len(keypoints) == len(joints) == len(contact):
@@ -146,7 +258,12 @@ class ArmStateLearner:
         with threadpool_limits(1, user_api='blas'):
             vec = KeypointVectorizer(**{'random_state': self.random_state, **self.vectorizer_params})
             vec.fit(list(keypoints))
-            X = vec.fill_missing(vec.training_vectors_)
+            raw = vec.training_vectors_
+            self.vectorizer_ = vec
+            self._learn_roles(raw, joints)
+            V = self._raw_vectors(raw)
+            self.imputer_ = NearestImputer(vec.n_impute_neighbors).fit(V)
+            X = self.imputer_.transform(V)
         models = REGION_MODELS if self.region == 'auto' else (self.region,)
         fitted = {}
         for method in ('lle', 'pca'):
@@ -156,7 +273,6 @@ class ArmStateLearner:
             emb, region = fit_contact_model(X, contact, sel, method, self.n_components,
                                             self._embedding_params(method), self.random_state)
             fitted[method] = (emb, region, sel)
-        self.vectorizer_ = vec
         self.lle_, self.region_, self.selection_ = fitted['lle']
         self.pca_, self.pca_region_, self.pca_selection_ = fitted['pca']
         self.train_vectors_ = X
@@ -170,8 +286,65 @@ class ArmStateLearner:
         self._update_map()
         return self
 
+    def _learn_roles(self, raw: np.ndarray, joints: np.ndarray) -> None:
+        self.label_roles_, self.joint_coef_, self.label_r2_, self.label_motion_ = label_roles(
+            raw, joints, self.min_motion, self.self_r2, self.external_r2)
+        P = raw.reshape(len(raw), -1, 2)
+        seen = np.isfinite(P[:, :, 0])
+        self.label_mean_ = np.where(seen.any(0)[:, None], np.nansum(P, axis=0) /
+                                       np.maximum(seen.sum(0), 1)[:, None], np.nan)
+        if self.representation == 'relative' and not np.any(self.label_roles_ == SELF):
+            raise ValueError('no keypoint label follows the joint readings; cannot build the relative vector')
+
     def _embedding_params(self, method: str) -> Dict:
         return dict(lle_method=self.lle_method) if method == 'lle' else {}
+
+    # --- vectors --------------------------------------------------------------------------------------------
+    @property
+    def self_labels_(self) -> np.ndarray:
+        return np.flatnonzero(self.label_roles_ == SELF)
+
+    @property
+    def external_labels_(self) -> np.ndarray:
+        return np.flatnonzero(self.label_roles_ == EXTERNAL)
+
+    def _fill_from_recent(self, raw: np.ndarray, recent_raw: Sequence[np.ndarray]) -> np.ndarray:
+        """Labels other than the robot's own that are unseen in `raw` (2L,) taken from the most recent frame of
+        `recent_raw` (newest last) that saw them."""
+        P = raw.reshape(-1, 2).copy()
+        others = self.label_roles_ != SELF
+        for r in list(recent_raw)[::-1][:self.recent_frames]:
+            hole = others & ~np.isfinite(P[:, 0])
+            if not hole.any():
+                break
+            R = r.reshape(-1, 2)
+            P[hole] = R[hole]
+        return P.ravel()
+
+    def _raw_vectors(self, raw: np.ndarray) -> np.ndarray:
+        """Vectors to embed (with NaN) from raw labelled positions of frames in order (hidden external labels
+        filled from the preceding frames)."""
+        filled = np.array([self._fill_from_recent(raw[i], raw[max(0, i - self.recent_frames):i])
+                           for i in range(len(raw))]) if len(raw) else raw
+        return self._vectors_of_positions(filled.reshape(len(filled), -1, 2))
+
+    def _vectors_of_positions(self, P: np.ndarray) -> np.ndarray:
+        """(n, L, 2) labelled positions (NaN where unknown) -> (n, d) vectors to embed."""
+        if self.representation == 'absolute':
+            return P.reshape(len(P), -1)
+        ext = self.external_labels_
+        if len(ext):
+            with np.errstate(invalid='ignore'), warnings.catch_warnings():
+                warnings.simplefilter('ignore', RuntimeWarning)     # all external labels unseen -> NaN offset
+                offset = np.nanmedian(P[:, ext] - self.label_mean_[ext], axis=1)
+        else:
+            offset = np.zeros((len(P), 2))
+        return (P[:, self.self_labels_] - offset[:, None, :]).reshape(len(P), -1)
+
+    def frame_vectors(self, keypoints: Sequence[FrameKeypoints]) -> np.ndarray:
+        """Imputed vectors (n, d) of new frames taken in this order, as embedded (for evaluation and figures)."""
+        raw = self.vectorizer_.transform(list(keypoints))
+        return self.imputer_.transform(self._raw_vectors(raw))
 
     def _update_map(self) -> None:
         self.train_predicted_ = self.region_.predict(self.lle_.embedding_)
@@ -185,9 +358,10 @@ class ArmStateLearner:
         return len(self.train_joints_)
 
     # --- per-frame state ----------------------------------------------------------------------------------
-    def transform(self, frame: FrameKeypoints) -> Dict[str, object]:
+    def transform(self, frame: FrameKeypoints, recent: Sequence[FrameKeypoints] = ()) -> Dict[str, object]:
         """State of one new frame: raw vector (NaN where unmatched), labelled count, LLE and PCA coordinates
-        (out of sample), collision prediction and closeness of the LLE contact region.
+        (out of sample), collision prediction and closeness of the LLE contact region. `recent`: frames taken
+        just before (oldest first) that may stand in for hidden external labels.
 
         The out-of-sample maps are those of ImageEmbedding.transform (LLE: barycentric weights of the n_neighbors
         nearest training vectors, regularised like scikit-learn's barycenter_weights; PCA: projection), computed
@@ -196,7 +370,8 @@ class ArmStateLearner:
         if not hasattr(self, 'region_'):
             raise RuntimeError('ArmStateLearner is not fitted')
         raw = self.vectorizer_.vectorize(frame)
-        x = self.vectorizer_.fill_missing(raw[None])[0]
+        filled = self._fill_from_recent(raw, [self.vectorizer_.vectorize(r) for r in recent])
+        x = self.imputer_.transform(self._vectors_of_positions(filled.reshape(1, -1, 2)))[0]
         y = self.lle_transform(x[None])[0]
         p = self.pca_transform(x[None])[0]
         return dict(vector=raw, labelled=int(np.isfinite(raw).sum() // 2), embedding=y, pca_embedding=p,
@@ -211,16 +386,14 @@ class ArmStateLearner:
             self._lle_tree = cKDTree(self._lle_Z)
         k = min(self.n_neighbors, len(self._lle_Z))
         _, ind = self._lle_tree.query(Z, k=k)
-        ind = np.atleast_2d(ind)
-        out = np.empty((len(Z), self.lle_.embedding_.shape[1]))
-        for i, (z, nb) in enumerate(zip(Z, ind)):
-            D = self._lle_Z[nb] - z
-            G = D @ D.T
-            trace = float(np.trace(G))
-            G.flat[::k + 1] += self.lle_.reg * trace if trace > 0 else self.lle_.reg
-            w = np.linalg.solve(G, np.ones(k))
-            out[i] = (w / w.sum()) @ self.lle_.embedding_[nb]
-        return out
+        ind = np.asarray(ind).reshape(len(Z), k)
+        D = self._lle_Z[ind] - Z[:, None, :]                    # (n, k, d)
+        G = np.einsum('nkd,njd->nkj', D, D)
+        trace = np.trace(G, axis1=1, axis2=2)
+        G[:, np.arange(k), np.arange(k)] += np.where(trace > 0, self.lle_.reg * trace, self.lle_.reg)[:, None]
+        w = np.linalg.solve(G, np.ones((len(Z), k, 1)))[:, :, 0]
+        w /= w.sum(axis=1, keepdims=True)
+        return np.einsum('nk,nkc->nc', w, self.lle_.embedding_[ind])
 
     def pca_transform(self, X: np.ndarray) -> np.ndarray:
         """PCA coordinates of imputed vectors (n, d)."""
@@ -228,19 +401,60 @@ class ArmStateLearner:
         m = self.pca_.model_
         return (Z - m.mean_) @ m.components_.T
 
+    # --- planning before moving -----------------------------------------------------------------------------
+    def map_lattice(self) -> np.ndarray:
+        """(R, C, 2) joint vectors of the lattice predict_collision_map evaluates: map_resolution points per cell
+        side, cell edges and centres included (R = rows * map_resolution + 1)."""
+        rows, cols = self.grid_shape
+        s = self.map_resolution
+        a = np.linspace(self.joint_limits[0, 0], self.joint_limits[0, 1], rows * s + 1)
+        b = np.linspace(self.joint_limits[1, 0], self.joint_limits[1, 1], cols * s + 1)
+        return np.stack(np.meshgrid(a, b, indexing='ij'), -1)
+
+    def predict_frames(self, frame: FrameKeypoints, joints: np.ndarray,
+                       recent: Sequence[FrameKeypoints] = ()) -> Dict[str, np.ndarray]:
+        """Predicted states of the frames the camera would see with the arm at `joints` (n, 2) and everything else
+        as in `frame` (hidden labels from `recent`, oldest first): the robot's labels where the joint regression
+        puts them. Returns dict(vectors (n, d) imputed, embedding (n, k), closeness (n,), collision (n,) - with
+        the planning margin map_margin - and external_seen (labels of the object side known))."""
+        if not hasattr(self, 'region_'):
+            raise RuntimeError('ArmStateLearner is not fitted')
+        q = np.asarray(joints, dtype=float).reshape(-1, 2)
+        if not np.all(np.isfinite(q)):
+            raise ValueError('joints must be finite')
+        raw = self.vectorizer_.vectorize(frame)
+        filled = self._fill_from_recent(raw, [self.vectorizer_.vectorize(r) for r in recent]).reshape(-1, 2)
+        P = np.repeat(filled[None], len(q), axis=0)
+        own = self.self_labels_
+        P[:, own] = np.einsum('nf,lfc->nlc', joint_features(q), self.joint_coef_[own])
+        X = self.imputer_.transform(self._vectors_of_positions(P))
+        Y = self.lle_transform(X)
+        close = self.region_.closeness(Y)
+        return dict(vectors=X, embedding=Y, closeness=close, collision=close >= -self.map_margin,
+                    external_seen=int(np.isfinite(filled[self.external_labels_, 0]).sum()))
+
+    def predict_collision_map(self, frame: FrameKeypoints, recent: Sequence[FrameKeypoints] = ()
+                              ) -> Dict[str, object]:
+        """Collision map for the object placement seen in `frame` before moving (module docstring): dict(
+        collision (rows, cols) bool, closeness (rows, cols) float (largest over the cell's cross of lattice
+        points), lattice_joints (R, C, 2), lattice_closeness (R, C), external_labels (learned count),
+        external_seen (of them known in frame + recent), new_frames (1 + len(recent)))."""
+        lattice = self.map_lattice()
+        pred = self.predict_frames(frame, lattice.reshape(-1, 2), recent)
+        close = pred['closeness'].reshape(lattice.shape[:2])
+        collision, closeness = cross_max(close >= -self.map_margin, close, self.grid_shape, self.map_resolution)
+        return dict(collision=collision, closeness=closeness, lattice_joints=lattice, lattice_closeness=close,
+                    external_labels=int(len(self.external_labels_)), external_seen=pred['external_seen'],
+                    new_frames=1 + len(recent))
+
     # --- persistence (np.savez + JSON, no pickle) ---------------------------------------------------------
     def save(self, path: os.PathLike) -> None:
         """Write the fitted model to `path` (.npz) atomically: a temp file in the same directory + os.replace."""
         path = Path(path)
         vec = self.vectorizer_
-        meta = dict(format_version=FORMAT_VERSION, n_components=self.n_components, n_neighbors=self.n_neighbors,
-                    lle_method=self.lle_method, region=self.region, n_folds=self.n_folds,
-                    grid_shape=list(self.grid_shape),
-                    joint_limits=self.joint_limits.tolist(), cell_min_frames=self.cell_min_frames,
-                    cell_collision_fraction=self.cell_collision_fraction, map_margin=self.map_margin,
+        meta = dict(format_version=FORMAT_VERSION, params=self.get_params(),
                     vectorizer_params={k: getattr(vec, k) for k in _VECTORIZER_PARAMS},
-                    random_state=self.random_state, n_labels=int(vec.n_labels_),
-                    n_frames_seen=int(vec.n_frames_seen_),
+                    n_labels=int(vec.n_labels_), n_frames_seen=int(vec.n_frames_seen_),
                     selection=self.selection_, pca_selection=self.pca_selection_)
         region_arrays = {}
         for name in ('region', 'pca_region'):
@@ -257,7 +471,9 @@ class ArmStateLearner:
             pca_explained_variance=self.pca_.model_.explained_variance_,
             **region_arrays,
             train_vectors=self.train_vectors_, train_joints=self.train_joints_, train_contact=self.train_contact_,
-            train_stamps=self.train_stamps_)
+            train_stamps=self.train_stamps_, label_roles=self.label_roles_, joint_coef=self.joint_coef_,
+            label_r2=self.label_r2_, label_motion=self.label_motion_, label_mean=self.label_mean_,
+            imputer_vectors=np.where(self.imputer_.observed_, self.imputer_.values_, np.nan))
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
         try:
@@ -278,10 +494,9 @@ class ArmStateLearner:
             meta = json.loads(str(a['meta']))
             if meta.get('format_version') != FORMAT_VERSION:
                 raise ModelFileError(f'{path}: format version {meta.get("format_version")}, expected {FORMAT_VERSION}')
-            self = cls(meta['n_components'], meta['n_neighbors'], meta['lle_method'], meta['region'],
-                       tuple(meta['grid_shape']), meta['joint_limits'], meta['cell_min_frames'],
-                       meta['cell_collision_fraction'], meta['map_margin'], random_state=meta['random_state'],
-                       n_folds=meta['n_folds'])
+            params = dict(meta['params'])
+            params['grid_shape'] = tuple(params['grid_shape'])
+            self = cls(**params)
             self._restore(meta, a)
         except ModelFileError:
             raise
@@ -307,7 +522,15 @@ class ArmStateLearner:
         vec.imputer_ = (NearestImputer(vec.n_impute_neighbors) if vec.imputation == 'nearest'
                         else MeanImputer()).fit(vec.training_vectors_)
         self.vectorizer_ = vec
+        self.label_roles_ = a['label_roles'].astype(int)
+        self.joint_coef_, self.label_r2_ = a['joint_coef'], a['label_r2']
+        self.label_motion_, self.label_mean_ = a['label_motion'], a['label_mean']
+        if not (len(self.label_roles_) == len(self.joint_coef_) == len(self.label_mean_) == vec.n_labels_):
+            raise ModelFileError('label arrays do not match the number of labels')
+        self.imputer_ = NearestImputer(vec.n_impute_neighbors).fit(a['imputer_vectors'])
         X = a['train_vectors']
+        if self.imputer_.values_.shape[1] != X.shape[1]:
+            raise ModelFileError('imputer and training vectors differ in width')
         for name in ('lle', 'pca'):
             emb = ImageEmbedding(self.n_components, self.n_neighbors, name, lle_method=self.lle_method,
                                  random_state=self.random_state)

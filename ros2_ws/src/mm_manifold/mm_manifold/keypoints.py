@@ -15,6 +15,11 @@ We keep that idea but replace the SOM with an explicit, deterministic track buil
    `match_ratio`); matches are merged into tracks with union-find, best matches first, refusing any merge that would
    put two keypoints of one frame in the same track (that is how a chain of small drifts is kept from gluing two
    physical points together).
+   A rigid part that does not rotate but jumps between frames (an object re-placed while the robot explores) keeps
+   its descriptors but moves farther than `max_pixel_shift`; so keypoints of linked frames are also matched
+   anywhere in the image when the match is very distinctive (ratio `global_match_ratio` against every other
+   keypoint of the other frame), neither keypoint found a match nearby and another such match of the two frames
+   moved by the same shift (within RIGID_SHIFT_TOLERANCE px), which joins the object's tracks across its placements.
 4. Tracks seen in at least `min_frame_fraction` of the frames become labels (the `n_labels` most frequent ones).
 
 Why not a SOM: a SOM needs a map size and a learning schedule, and its labels depend on the presentation order;
@@ -38,6 +43,7 @@ from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
 THUMBNAIL_SIZE = 24
+RIGID_SHIFT_TOLERANCE = 3.0     # px, far matches of one rigid jump agree this closely
 
 
 @dataclass
@@ -245,7 +251,7 @@ class KeypointVectorizer:
     between a keypoint and a label exemplar, n_frame_neighbors (image-similarity graph degree), min_frame_fraction
     (a label must be seen in this share of the training frames), exemplar_spacing [px] (None: max_pixel_shift / 2),
     imputation ('nearest' or 'mean'), n_impute_neighbors, max_fit_frames (random subset for labelling; the rest
-    is still vectorised), random_state.
+    is still vectorised), random_state, global_match_ratio (Lowe ratio of matches anywhere in the image; None: off).
     Learned attributes: n_labels_, label_counts_ (training frames per label), label_positions_ (mean position),
     exemplar_positions_, exemplar_descriptors_, exemplar_labels_, training_vectors_ (with NaN), imputer_,
     n_frames_seen_.
@@ -254,7 +260,10 @@ class KeypointVectorizer:
     def __init__(self, n_labels: int = 200, max_features: int = 300, scale: float = 0.5, match_ratio: float = 0.8,
                  max_pixel_shift: float = 30.0, n_frame_neighbors: int = 6, min_frame_fraction: float = 0.2,
                  exemplar_spacing: Optional[float] = None, imputation: str = 'nearest', n_impute_neighbors: int = 5,
-                 max_fit_frames: int = 3000, random_state: Optional[int] = 0):
+                 max_fit_frames: int = 3000, random_state: Optional[int] = 0,
+                 global_match_ratio: Optional[float] = 0.5):
+        if global_match_ratio is not None and not 0.0 < global_match_ratio <= 1.0:
+            raise ValueError('global_match_ratio must be in (0, 1] or None (no matches beyond max_pixel_shift)')
         if n_labels < 1 or not 0.0 < match_ratio <= 1.0 or max_pixel_shift <= 0 or n_frame_neighbors < 1:
             raise ValueError('n_labels >= 1, 0 < match_ratio <= 1, max_pixel_shift > 0, n_frame_neighbors >= 1')
         if not 0.0 <= min_frame_fraction <= 1.0:
@@ -273,6 +282,7 @@ class KeypointVectorizer:
         self.n_impute_neighbors = int(n_impute_neighbors)
         self.max_fit_frames = int(max_fit_frames)
         self.random_state = random_state
+        self.global_match_ratio = global_match_ratio
         self.extractor = KeypointExtractor(max_features=max_features, scale=scale)
 
     # --- per-frame helpers --------------------------------------------------------------------------------
@@ -327,6 +337,15 @@ class KeypointVectorizer:
         ea, eb, er = [], [], []
         for i, j in self._frame_graph(kps):
             ia, ib, r = _match_pair(kps[i], kps[j], self.max_pixel_shift, self.match_ratio)
+            if self.global_match_ratio is not None:
+                ga, gb, gr = _match_pair(kps[i], kps[j], np.inf, self.global_match_ratio)
+                shift = kps[j].positions[gb] - kps[i].positions[ga]
+                far = (np.linalg.norm(shift, axis=1) > self.max_pixel_shift) & ~np.isin(ga, ia) & ~np.isin(gb, ib)
+                # a part that jumped without turning moves all its keypoints alike: keep a far match only if another
+                # far match of the pair shifted the same way (look-alike points of a turning part do not)
+                agree = np.linalg.norm(shift[:, None] - shift[None], axis=2) < RIGID_SHIFT_TOLERANCE
+                far &= (agree & far[None, :]).sum(axis=1) >= 2
+                ia, ib, r = np.r_[ia, ga[far]], np.r_[ib, gb[far]], np.r_[r, gr[far]]
             ea.append(ia + offsets[i])
             eb.append(ib + offsets[j])
             er.append(r)

@@ -1,10 +1,12 @@
-"""ArmStateLearner: collision map from the embedding, fast out-of-sample maps, saving/loading without pickle."""
+"""ArmStateLearner: label roles from the joints, collision maps (over exploration frames and predicted before moving for
+an unseen object placement), fast out-of-sample maps, saving/loading without pickle."""
 import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_cdt
 
-from mm_manifold.arm_evaluation import sample_exploration_joints
-from mm_manifold.arm_learning import ArmStateLearner, ModelFileError, cell_map
+from mm_manifold.arm_evaluation import moving_object_exploration, render_keypoints, sample_exploration_joints
+from mm_manifold.arm_learning import (EXTERNAL, SELF, STATIC, ArmStateLearner, ModelFileError, cell_map, cross_max,
+                                      joint_features, label_roles)
 from mm_manifold.embedding import ContactQuadric, ContactSphere
 from mm_manifold.keypoints import KeypointExtractor
 from mm_sim.arm_model import ArmModel
@@ -45,7 +47,7 @@ def test_cell_map_by_hand():
 
 def test_fast_out_of_sample_maps_equal_the_embedding_transforms(fitted):
     learner, new_kps, _ = fitted
-    X = learner.vectorizer_.fill_missing(learner.vectorizer_.transform(new_kps))
+    X = learner.frame_vectors(new_kps)
     np.testing.assert_allclose(learner.lle_transform(X), learner.lle_.transform(X), atol=1e-10)
     np.testing.assert_allclose(learner.pca_transform(X), learner.pca_.transform(X), atol=1e-8)
     # training vectors land near their own embedding
@@ -68,14 +70,12 @@ def test_collision_map_marks_the_cells_where_contact_frames_are(fitted):
 
 
 def test_closeness_map_falls_off_with_the_distance_from_the_collision_cells(fitted):
-    # The planner keeps clear of the contact region by this map (mm_planner.value_iteration.clearance_rewards, which
-    # charges closeness above -1 by default): free cells next to predicted collision cells must read as close, cells
-    # farther away clearly less so.
+    # The planner keeps clear of the contact region by this map (mm_planner.value_iteration.clearance_rewards): free
+    # cells next to predicted collision cells must read as closer than cells farther away.
     learner, _, _ = fitted
     close = learner.closeness_map_
     assert np.all(close[learner.collision_map_] >= -learner.map_margin)
     steps = distance_transform_cdt(~learner.collision_map_, metric='taxicab')    # grid moves to a collision cell
-    assert np.median(close[steps == 1]) > -1.0
     assert np.median(close[steps == 1]) > np.median(close[steps >= 3]) + 0.5
 
 
@@ -93,6 +93,12 @@ def test_save_load_round_trip_and_corrupt_files(fitted, tmp_path):
         np.testing.assert_allclose(a['embedding'], b['embedding'], atol=1e-12)
         np.testing.assert_allclose(a['pca_embedding'], b['pca_embedding'], atol=1e-12)
         assert a['collision'] == b['collision']
+    for name in ('label_roles_', 'joint_coef_', 'label_mean_'):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(learner, name))
+    assert loaded.get_params() == learner.get_params()
+    m1, m2 = learner.predict_collision_map(new_kps[0]), loaded.predict_collision_map(new_kps[0])
+    np.testing.assert_array_equal(m1['collision'], m2['collision'])
+    np.testing.assert_allclose(m1['closeness'], m2['closeness'], atol=1e-9)
     data = path.read_bytes()
     (tmp_path / 'truncated.npz').write_bytes(data[:len(data) // 2])
     (tmp_path / 'garbage.npz').write_bytes(b'not a model')
@@ -131,3 +137,84 @@ def test_each_contact_region_predicts_and_survives_saving(frames, region, tmp_pa
         assert a['collision'] == b['collision'] and a['closeness'] == pytest.approx(b['closeness'], abs=1e-12)
     with pytest.raises(ValueError):
         ArmStateLearner(region='cube')
+
+
+def test_joint_features_make_a_two_link_arm_point_linear():
+    rng = np.random.default_rng(0)
+    q = rng.uniform(-3, 3, (50, 2))
+    a0, a1 = q[:, 0], q[:, 0] + q[:, 1]
+    point = np.stack([5 + 3 * np.cos(a0) + 2 * np.cos(a1), 1 + 3 * np.sin(a0) + 2 * np.sin(a1)], 1)
+    phi = joint_features(q)
+    assert phi.shape == (50, 9)
+    coef = np.linalg.lstsq(phi, point, rcond=None)[0]
+    np.testing.assert_allclose(phi @ coef, point, atol=1e-9)
+
+
+def test_label_roles_by_hand():
+    rng = np.random.default_rng(1)
+    q = rng.uniform(-2, 0, (200, 2))
+    arm = np.stack([100 + 50 * np.cos(q[:, 0]), 100 + 50 * np.sin(q[:, 0])], 1)
+    obj = rng.uniform(50, 350, (200, 2))            # moves, but not with the joints
+    wall = np.full((200, 2), 30.0) + rng.normal(0, 0.3, (200, 2))
+    raw = np.hstack([arm, obj, wall])
+    raw[rng.random(200) < 0.2, 2:4] = np.nan        # the object is sometimes hidden
+    roles, coef, r2, motion = label_roles(raw, q)
+    assert roles.tolist() == [SELF, EXTERNAL, STATIC]
+    assert r2[0] > 0.999 and r2[1] < 0.1 and motion[2] < 1.0
+
+
+def test_cross_max_covers_the_centre_and_the_moves_to_the_neighbours():
+    s = 4
+    hit = np.zeros((2 * s + 1, 3 * s + 1), bool)
+    hit[s + s // 2, 2 * s + 1] = True            # on the move from cell (1, 1)'s centre... to (1, 2)'s centre
+    value = np.where(hit, 1.0, -1.0)
+    col, close = cross_max(hit, value, (2, 3), s)
+    assert col.tolist() == [[False, False, False], [False, True, True]]
+    assert close[1, 1] == 1.0 and close[0, 0] == -1.0
+    with pytest.raises(ValueError):
+        cross_max(hit[:-1], value[:-1], (2, 3), s)
+
+
+@pytest.fixture(scope='module')
+def moving():
+    """A learner kept across placements: exploration with the object re-placed every 10 frames."""
+    model = ArmModel(random_state=4)
+    data = moving_object_exploration(model, 240, 10, rng=np.random.default_rng(4))
+    kps = render_keypoints(model, data['joints'], data['object'], KeypointExtractor())
+    learner = ArmStateLearner(random_state=0, n_folds=3).fit(kps, data['joints'], data['contact'])
+    return model, learner
+
+
+def test_moving_object_exploration_replaces_the_object():
+    model = ArmModel(random_state=5)
+    d = moving_object_exploration(model, 40, 10, rng=np.random.default_rng(5))
+    assert len(np.unique(d['object'], axis=0)) == 4 and d['placement'].tolist() == sorted(d['placement'])
+    np.testing.assert_allclose(d['distance'], np.linalg.norm(
+        np.array([model.link_points(q)[2] for q in d['joints']]) - d['object'], axis=1))
+    assert np.all(d['any_contact'][d['contact']])
+
+
+def test_predict_collision_map_for_an_unseen_placement(moving):
+    model, learner = moving
+    assert (learner.label_roles_ == SELF).sum() >= 10          # the arm's labels follow the joints
+    ext = KeypointExtractor()
+    rng = np.random.default_rng(99)
+    accuracy = []
+    for _ in range(3):
+        model.set_object_position(model.random_object_position(rng))
+        far = max(model.sample_joints(50, rng), key=model.hand_object_distance)
+        out = learner.predict_collision_map(ext(model.render(far)))
+        assert out['collision'].shape == out['closeness'].shape == (8, 12) and out['new_frames'] == 1
+        assert np.all(np.isfinite(out['closeness']))
+        lattice = out['lattice_joints']
+        truth = np.array([[model.in_contact(q) for q in row] for row in lattice])
+        pred = out['lattice_closeness'] >= -learner.map_margin
+        accuracy.append(np.mean(pred == truth))
+        # closeness is higher where the hand is near the object than where it is far from it
+        dist = np.array([[model.hand_object_distance(q) for q in row] for row in lattice])
+        assert np.median(out['lattice_closeness'][dist < 60]) > np.median(out['lattice_closeness'][dist > 150])
+    assert np.mean(accuracy) > 0.8, accuracy
+    # the same call with recent frames, and the per-frame state with them
+    frame = ext(model.render(model.sample_joints(1, rng)[0]))
+    assert learner.predict_collision_map(frame, recent=[frame])['new_frames'] == 2
+    assert np.isfinite(learner.transform(frame, recent=[frame])['closeness'])
