@@ -37,7 +37,7 @@ from rclpy.parameter_client import AsyncParameterClient
 
 from mm_bringup import bag_tool, topic_tool
 from mm_bringup.message_yaml import interface_class, interface_lines, parse_values, set_message_fields
-from mm_bringup.topic_tool import absolute, cli_node, run_cli, settle_graph
+from mm_bringup.topic_tool import absolute, cli_node, run_cli, settle_graph, silence_stdout
 
 PARAMETER_TYPES = {
     ParameterType.PARAMETER_NOT_SET: ('not set', 'Parameter not set.'),
@@ -444,7 +444,13 @@ def main(argv: Optional[List[str]] = None) -> int:
             return 1
 
     if args.command in ('run', 'pkg', 'interface'):    # no graph needed
-        return guarded(args)
+        try:
+            rc = guarded(args)
+            sys.stdout.flush()
+            return rc
+        except BrokenPipeError:                         # `| head`: stop quietly, as ros2cli does
+            silence_stdout()
+            return 0
     return run_cli(guarded, args)
 
 

@@ -4,7 +4,7 @@
     ros2 topic info /wheeled/range/front_left -v
     ros2 topic echo /wheeled/manifold/state --once
     ros2 topic hz /wheeled/range/front_center
-    ros2 topic pub --once /wheeled/goal mm_msgs/msg/SensorGoal "{sensor_group: 2, reading: [0.3, 0.3]}"
+    ros2 topic pub --once /wheeled/wheel_velocity_controller/commands std_msgs/msg/Float64MultiArray "{data: [1, 1]}"
 
 Output can be piped (`| head -3`): when the reader goes away the tool stops quietly with exit status 0.
 """
@@ -363,7 +363,7 @@ def run_cli(function, args) -> int:
     except BrokenPipeError:
         # The reader of our output went away (`| head`): stop quietly, as ros2cli does. Point stdout at /dev/null so
         # the interpreter's final flush of the buffered rest does not raise again.
-        _silence_stdout()
+        silence_stdout()
         return 0
     finally:
         rclpy.try_shutdown()
@@ -373,7 +373,7 @@ def main(argv: Optional[List[str]] = None, prog: str = 'mm topic') -> int:
     return run_cli(run, build_parser(prog).parse_args(argv))
 
 
-def _silence_stdout() -> None:
+def silence_stdout() -> None:
     try:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
