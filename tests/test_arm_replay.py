@@ -68,11 +68,9 @@ def test_rebuilt_embedding_matches_the_online_fit(recorded):
 
     extractor = KeypointExtractor()
     kps = [extractor(frames[s][0]) for s in stamps]
-    rebuilt = ArmStateLearner(online.n_components, online.n_neighbors, online.lle_method, online.region,
-                              online.grid_shape, online.joint_limits, online.cell_min_frames,
-                              online.cell_collision_fraction, online.map_margin,
-                              random_state=online.random_state, n_folds=online.n_folds).fit(
-                                  kps, online.train_joints_, online.train_contact_, stamps)
+    params = online.get_params()
+    params['grid_shape'] = tuple(params['grid_shape'])
+    rebuilt = ArmStateLearner(**params).fit(kps, online.train_joints_, online.train_contact_, stamps)
     assert rebuilt.vectorizer_.n_labels_ == online.vectorizer_.n_labels_
     np.testing.assert_allclose(rebuilt.vectorizer_.training_vectors_, online.vectorizer_.training_vectors_,
                                atol=1e-4, equal_nan=True)

@@ -118,8 +118,8 @@ class ImageEmbeddingNode(Node):
         self.random_seed = declare(self, 'random_seed', 0, 'Seed of every random choice in learning',
                                    min_value=0, max_value=2**31 - 1, read_only=True)
         p = dict(
-            n_components=declare(self, 'n_components', 3, 'Embedding dimension', min_value=1, max_value=10,
-                                 read_only=True),
+            n_components=declare(self, 'n_components', 4, 'Embedding dimension (4: chosen by mm_bringup.tune_arm on '
+                                 'scenes and seeds of its own)', min_value=1, max_value=10, read_only=True),
             n_neighbors=declare(self, 'n_neighbors', 20, 'LLE neighbours', min_value=3, max_value=200,
                                 read_only=True),
             region=declare(self, 'contact_region', 'auto', "Contact region in the LLE space: 'sphere' (paper), "

@@ -92,7 +92,7 @@ def test_learns_online_latches_the_map_saves_and_reloads(tmp_path):
         q = joints[0]
         pubs['image'].publish(image_msg(model.render(q), 1000))
         assert ros.spin_until(lambda: seen['state'][-1].model_ready, timeout=10)
-        assert len(seen['state'][-1].embedding) == 3 and seen['state'][-1].training_frames == N_FRAMES
+        assert len(seen['state'][-1].embedding) == node.model.n_components == 4 and seen['state'][-1].training_frames == N_FRAMES
         # a refit that scores worse in cross-validation (labels shuffled) does not replace the live model
         live = node.model
         n = 60
