@@ -48,6 +48,9 @@ def _signal_cycles(graph: ProcessGraph, ros: RosHarness, package: str, executabl
             if rc is None:
                 graph.stop(node)
         node.log_path.rename(node.log_path.with_name(f'{executable}.{cycle}.log'))
+        # Signals before the node's Python imports are done keep Python's defaults (run_node is not running yet):
+        # restart only once the old node has left the graph, and signal only once the new one is on it.
+        wait_for(lambda: executable not in ros.nodes[0].get_node_names(), 30.0, message=f'{executable} to leave')
         node = graph.start(package, executable, parameters)
         wait_for(lambda: executable in ros.nodes[0].get_node_names() or node.process.poll() is not None, 30.0,
                  message=f'{executable} to restart')

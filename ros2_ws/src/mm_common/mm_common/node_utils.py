@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import signal
+import socket
 import sys
 import threading
 import time
@@ -18,8 +19,7 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
-# How long the executor waits for work before it looks at the stop flag again: bounds the shutdown latency.
-_STOP_POLL_SEC = 0.1
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = None) -> None:
@@ -27,15 +27,42 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
 
     rclpy's own signal handlers shut the context down inside the handler, which races with an executor that is
     building its wait set (`RCLError: failed to initialize wait set: the given context is not valid`, exit 1).
-    Here the handlers only set a flag: the executor notices it within `_STOP_POLL_SEC`, returns, and the node is
-    destroyed before the context is shut down. Further signals during clean-up are ignored (SIGKILL still works).
+    Here a signal only sets a flag and wakes the executor through a guard condition, so it returns and the node is
+    destroyed before the context is shut down. The wake-up goes through `signal.set_wakeup_fd` and a thread that
+    reads it: whichever thread the kernel delivers the signal to (numpy's, DDS's), and while the main thread waits in
+    the executor without a timeout (no cost per message). Further signals during clean-up are ignored (SIGKILL
+    still works); signals before the node's imports are done keep Python's defaults.
     A start-up configuration the node refuses (a parameter out of its range, of the wrong type, or a ValueError from
     the constructor) ends the process with one error line and exit status 2 instead of a traceback.
     """
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    wake: Dict[str, Any] = {}
+
+    def request_stop() -> None:
+        if stop.is_set():
+            return                        # clean-up is under way: ignore
+        stop.set()
+        guard = wake.get('guard')
+        if guard is not None:
+            try:
+                guard.trigger()
+            except Exception:  # noqa: BLE001 - destroyed meanwhile: the flag is enough
+                pass
+
+    reader, writer = socket.socketpair()
+    writer.setblocking(False)
+    signal.set_wakeup_fd(writer.fileno(), warn_on_full_buffer=False)
+    for sig in _STOP_SIGNALS:
+        signal.signal(sig, lambda *_: stop.set())      # runs later in the main thread; the reader acts at once
+
+    def read_signals() -> None:
+        while True:
+            received = reader.recv(64)
+            if any(b in (int(s) for s in _STOP_SIGNALS) for b in received):
+                request_stop()
+
+    threading.Thread(target=read_signals, name='stop_signals', daemon=True).start()
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     executor = None
     refused = ''
@@ -47,16 +74,18 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
         except (ParameterException, ValueError) as exc:
             refused = f'{getattr(node_factory, "__name__", "node")}: cannot start: {exc}'
             return
+        wake['guard'] = node.create_guard_condition(lambda: None)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         while not stop.is_set() and rclpy.ok():
-            executor.spin_once(timeout_sec=_STOP_POLL_SEC)
+            executor.spin_once()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except _rclpy.RCLError:
         if rclpy.ok() and not stop.is_set():
             raise       # a real failure, not the shutdown race
     finally:
+        wake.pop('guard', None)
         if executor is not None:
             executor.shutdown(timeout_sec=1.0)
         if node is not None:

@@ -77,6 +77,7 @@ def test_array_problem_says_what_is_wrong():
 
 _BUSY_NODE = r'''
 import sys
+import numpy     # starts BLAS threads before run_node: a signal may be delivered to one of them
 from std_msgs.msg import Float64MultiArray
 from rclpy.node import Node
 from mm_common.node_utils import run_node
