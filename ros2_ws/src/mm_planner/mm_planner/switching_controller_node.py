@@ -215,7 +215,8 @@ class SwitchingControllerNode(Node):
             state=True, space=int(msg.active_space),
             coordinates=np.asarray(msg.coordinates, dtype=float) if len(msg.coordinates) else None,
             sensor2_estimate=np.asarray(msg.sensor2_estimate, dtype=float) if len(msg.sensor2_estimate) else None,
-            readings=np.array(list(msg.sensor1) + list(msg.sensor2), dtype=float))
+            readings=np.array(list(msg.sensor1) + list(msg.sensor2), dtype=float),
+            learner_samples=int(msg.samples) or None)     # a learner's state counts its own sample: 0 = not given
         self.state_wall = time.monotonic()
         if not (self.agent.needs_bumper and not self.bumper_since_command):
             self._step_waiting()

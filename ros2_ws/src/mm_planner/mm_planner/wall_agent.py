@@ -6,7 +6,8 @@ Phases (mm_msgs/ControllerStatus): EXPLORING (RandomExplorer: random motion with
 bumper) -> LEARNING (no commands: the lockstep loop pauses while the learner fits; a model that has not seen sensor 2
 during its excursions cannot map any goal, so `exploration_steps // 4` more exploration steps follow, until the
 learner's refit has) -> WAITING_FOR_GOAL -> REACHING_SENSOR1 / REACHING_VIRTUAL_SENSOR1 / REACHING_SENSOR2
-(SwitchingController, with its retries) -> GOAL_REACHED or FAILED (then waiting again). Nothing here sees world
+(SwitchingController, with its retries) -> GOAL_REACHED or FAILED (then waiting again). A learner that holds fewer
+samples than were explored (it restarted) gets as many more exploration steps before LEARNING. Nothing here sees world
 coordinates: an observation holds the learner's state of one step, the raw readings and the bumper, and the events
 (a new model, a new goal) that arrived since the last step.
 """
@@ -46,6 +47,7 @@ class Observation:
     coordinates: Optional[np.ndarray] = None
     sensor2_estimate: Optional[np.ndarray] = None
     readings: Optional[np.ndarray] = None          # (5,) raw: sensor 1 then sensor 2; +-inf out of range, NaN lost
+    learner_samples: Optional[int] = None          # samples the learner holds (None: unknown)
     bumped: bool = False
     model: Optional[WallModel] = None
     goal: Optional[Goal] = None
@@ -190,6 +192,14 @@ class WallAgent:
     def _answer(self, state: Observation):
         command, error, target = None, math.nan, ()
         if self.phase == ControllerStatus.PHASE_EXPLORING:
+            if (self.explored >= self.exploration_budget and state.learner_samples is not None
+                    and state.learner_samples < self.explored):
+                # The learner lost samples (it restarted): without them it would never learn and the loop would
+                # wait for good. Explore until it holds as many as were explored.
+                missing = self.explored - state.learner_samples
+                self.exploration_budget = self.explored + missing
+                self._set_phase(ControllerStatus.PHASE_EXPLORING, f'the learner holds {state.learner_samples} of '
+                                                                  f'{self.explored} samples: exploring {missing} more')
             if self.explored >= self.exploration_budget:
                 self._set_phase(ControllerStatus.PHASE_LEARNING, f'{self.explored} exploration steps done')
             else:

@@ -107,3 +107,18 @@ def test_agent_never_commands_non_finite_and_reports_its_phases(model):
                                       sensor2_estimate=np.array([math.nan, 0.2]), readings=np.full(5, 0.2)))
     assert decision.command is not None and np.all(decision.command == 0.0)       # a stop, said in the log
     assert any('non-finite' in line for line in decision.log)
+
+
+def test_agent_explores_on_while_the_learner_holds_fewer_samples_than_explored():
+    """A learner that restarted lost its samples: the agent explores until the learner holds as many as were explored
+    (otherwise the learner never reaches its fit and the lockstep loop waits for good)."""
+    agent = WallAgent(DT, exploration_steps=5, random_state=0)
+    far = np.array([0.6, 0.5, 0.6, np.inf, np.inf])
+    for k in range(5):
+        assert agent.step(Observation(state=True, readings=far, learner_samples=k + 1)).command is not None
+    decision = agent.step(Observation(state=True, readings=far, learner_samples=3))     # restarted at step 3
+    assert decision.command is not None and decision.phase_name == 'EXPLORING'
+    assert 'holds 3 of 5 samples: exploring 2 more' in decision.detail
+    assert agent.step(Observation(state=True, readings=far, learner_samples=4)).command is not None
+    decision = agent.step(Observation(state=True, readings=far, learner_samples=8))
+    assert decision.command is None and decision.phase_name == 'LEARNING'
