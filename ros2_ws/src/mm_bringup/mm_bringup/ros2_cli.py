@@ -31,6 +31,7 @@ import yaml
 from ament_index_python.packages import PackageNotFoundError, get_package_prefix, get_packages_with_prefixes
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType
+from rclpy.action import get_action_client_names_and_types_by_node, get_action_server_names_and_types_by_node
 from rclpy.node import Node
 from rclpy.parameter import get_parameter_value, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
@@ -145,7 +146,8 @@ def _node(args) -> int:
             if args.count_nodes:
                 print(len(names))
             else:
-                print(*names, sep='\n') if names else None
+                for name in names:
+                    print(name)
             return 0
         full, base, namespace = _require_node(node, args.node_name, args.timeout)
         settle_graph(node)                      # its endpoints are discovered after the node itself
@@ -155,7 +157,8 @@ def _node(args) -> int:
             ('Publishers', node.get_publisher_names_and_types_by_node(base, namespace)),
             ('Service Servers', node.get_service_names_and_types_by_node(base, namespace)),
             ('Service Clients', node.get_client_names_and_types_by_node(base, namespace)),
-            ('Action Servers', []), ('Action Clients', []))
+            ('Action Servers', get_action_server_names_and_types_by_node(node, base, namespace)),
+            ('Action Clients', get_action_client_names_and_types_by_node(node, base, namespace)))
         for title, names_and_types in sections:
             print(f'  {title}:')
             print(*[f'    {name}: {", ".join(types)}' for name, types in sorted(names_and_types)
