@@ -1,12 +1,16 @@
 """Choose the arm learner's settings on scenes and seeds disjoint from the benchmark's (mm_bringup.bench.arm_task).
 
-    ./mm python -m mm_bringup.tune_arm [--output results/tune_arm.json]
+    ./mm python -m mm_bringup.tune_arm [--output results/tune_arm.json] [--stages embedding map]
 
-For every combination of the grid (keypoint vector representation, LLE method, embedding dimensions) it runs
-mm_manifold.arm_evaluation.evaluate_collision_prediction on scene SCENE_SEED with training placements from
-TRAIN_SEED and held-out placements from TEST_SEED (the benchmark uses scene 0 and generators 1, 2, 3) and scores
-the held-out TPR - FPR of the paper's LLE sphere and of the best cross-validated LLE region. The winner (largest
-sum of the two) goes into bench.arm_task.LEARNER_PARAMS by hand; the JSON records every row and the seeds.
+Stage 'embedding': for every combination of the grid (keypoint vector representation, LLE method, embedding
+dimensions) it runs mm_manifold.arm_evaluation.evaluate_collision_prediction on scene SCENE_SEED with training
+placements from TRAIN_SEED and held-out placements from TEST_SEED (the benchmark uses scene 0 and generators 1, 2,
+3) and scores the held-out TPR - FPR of the paper's LLE sphere and of the best cross-validated LLE region. The
+winner (largest sum of the two) goes into bench.arm_task.LEARNER_PARAMS by hand.
+Stage 'map': with bench.arm_task.LEARNER_PARAMS, learners fitted on the same training frames with the hand's touch
+and with a whole-arm touch plan before moving on MAP_PLACEMENTS placements of generator MAP_SEED, for every
+candidate map_threshold; the threshold with the best mean DP success (paper's rewards; ties: map accuracy) becomes
+ArmStateLearner's default map_threshold by hand. The JSON records every row and the seeds.
 """
 from __future__ import annotations
 
@@ -19,8 +23,35 @@ from pathlib import Path
 from mm_manifold.arm_evaluation import evaluate_collision_prediction
 from mm_manifold.keypoints import KeypointExtractor
 
-SCENE_SEED, TRAIN_SEED, TEST_SEED = 10, 11, 12
+SCENE_SEED, TRAIN_SEED, TEST_SEED, MAP_SEED = 10, 11, 12, 13
 GRID = dict(representation=('absolute', 'relative'), lle_method=('standard', 'modified'), n_components=(3, 4))
+MAP_THRESHOLDS = (0.0, 0.25, 0.5, 0.75, 1.0)
+MAP_PLACEMENTS = 20
+
+
+def tune_map(n_train: int, extractor) -> dict:
+    """Stage 'map' (module docstring)."""
+    import numpy as np
+    from mm_bringup.bench.arm_task import LEARNER_PARAMS, plan_before_moving
+    from mm_manifold.arm_evaluation import moving_object_exploration, render_keypoints
+    from mm_manifold.arm_learning import ArmStateLearner
+    from mm_sim.arm_model import ArmModel
+    model = ArmModel(random_state=SCENE_SEED)
+    train = moving_object_exploration(model, n_train, rng=np.random.default_rng(TRAIN_SEED))
+    kps = render_keypoints(model, train['joints'], train['object'], extractor)
+    rows = []
+    for touch, label in (('hand', 'contact'), ('any_part', 'any_contact')):
+        learner = ArmStateLearner(**LEARNER_PARAMS).fit(kps, train['joints'], train[label])
+        for threshold in MAP_THRESHOLDS:
+            learner.map_threshold = threshold
+            r = plan_before_moving(learner, model, MAP_PLACEMENTS, MAP_SEED, extractor, log=lambda *_: None)
+            rows.append(dict(touch=touch, map_threshold=threshold, success=r['plan_paper_success_rate'],
+                             map_accuracy=r['plan_map_any']['accuracy']))
+            print(json.dumps(rows[-1]), flush=True)
+    score = {t: (np.mean([r['success'] for r in rows if r['map_threshold'] == t]),
+                 np.mean([r['map_accuracy'] for r in rows if r['map_threshold'] == t])) for t in MAP_THRESHOLDS}
+    return dict(map_seed=MAP_SEED, map_placements=MAP_PLACEMENTS, learner_params=LEARNER_PARAMS, map_rows=rows,
+                best_map_threshold=max(MAP_THRESHOLDS, key=lambda t: score[t]))
 
 
 def main(argv=None) -> int:
@@ -28,8 +59,18 @@ def main(argv=None) -> int:
     parser.add_argument('--output', default='results/tune_arm.json')
     parser.add_argument('--n-train', type=int, default=1000)
     parser.add_argument('--n-test', type=int, default=300)
+    parser.add_argument('--stages', nargs='+', default=['embedding', 'map'], choices=['embedding', 'map'])
     args = parser.parse_args(argv)
     extractor = KeypointExtractor()
+    path = Path(args.output)
+    out = json.loads(path.read_text()) if path.is_file() else {}
+    out.update(seeds=dict(scene=SCENE_SEED, train=TRAIN_SEED, test=TEST_SEED, map=MAP_SEED), n_train=args.n_train,
+               n_test=args.n_test)
+    if 'map' in args.stages and 'embedding' not in args.stages:
+        out.update(tune_map(args.n_train, extractor))
+        _write(path, out)
+        print(f"[tune_arm] best map_threshold {out['best_map_threshold']}; wrote {path}")
+        return 0
     rows = []
     for values in itertools.product(*GRID.values()):
         params = dict(zip(GRID, values))
@@ -43,13 +84,19 @@ def main(argv=None) -> int:
         rows.append(row)
         print(json.dumps(row), flush=True)
     best = max(rows, key=lambda r: r['score'])
-    out = dict(seeds=dict(scene=SCENE_SEED, train=TRAIN_SEED, test=TEST_SEED), n_train=args.n_train,
-               n_test=args.n_test, grid={k: list(v) for k, v in GRID.items()}, best=best['params'], rows=rows)
-    path = Path(args.output)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(out, indent=2) + '\n')
-    print(f'[tune_arm] best {best["params"]} (score {best["score"]:.3f}); wrote {path}')
+    out.update(grid={k: list(v) for k, v in GRID.items()}, best=best['params'], rows=rows)
+    print(f'[tune_arm] best {best["params"]} (score {best["score"]:.3f})')
+    if 'map' in args.stages:
+        out.update(tune_map(args.n_train, extractor))
+        print(f"[tune_arm] best map_threshold {out['best_map_threshold']}")
+    _write(path, out)
+    print(f'[tune_arm] wrote {path}')
     return 0
+
+
+def _write(path: Path, data: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=2) + '\n')
 
 
 if __name__ == '__main__':

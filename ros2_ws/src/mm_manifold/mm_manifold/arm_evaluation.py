@@ -124,7 +124,7 @@ def raw_vector_baselines(X_train: np.ndarray, c_train: np.ndarray, X_test: np.nd
 def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_seed: int = 0,
                                   train_seed: int = 1, test_seed: int = 2, replace_every: int = 10,
                                   learner_params=None, n_neighbors_grid=(10, 20, 40),
-                                  extractor=None) -> Dict[str, object]:
+                                  extractor=None, touch: str = 'hand') -> Dict[str, object]:
     """Learn from moving-object exploration frames (placements drawn with `train_seed`), score collision
     prediction on frames of other placements (`test_seed`): never seen in training. Same frames for every method.
 
@@ -135,12 +135,17 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
     region model with the best cross-validated TPR - FPR), one per region model ('lle_ellipsoid', ...), and the
     no-embedding baselines 'raw_sphere', 'raw_knn'; each a confusion dict (tp, fn, fp, tn, tpr, fpr) with the
     chosen hyperparameters and the Spearman of the region's closeness with the true distance. Also returns the
-    learner and the test data (for the figures), class balance and timings."""
+    learner and the test data (for the figures), class balance and timings. `touch`: the label the robot learns
+    from and is scored against, 'hand' (the hand's touch sensor, the paper's label) or 'any_part' (a touch sensor
+    covering the whole arm)."""
     from scipy.stats import spearmanr
     from mm_manifold.arm_learning import ArmStateLearner
     from mm_manifold.keypoints import KeypointExtractor
     from mm_sim.arm_model import ArmModel
 
+    if touch not in ('hand', 'any_part'):
+        raise ValueError("touch must be 'hand' or 'any_part'")
+    label = 'contact' if touch == 'hand' else 'any_contact'
     model = ArmModel(random_state=scene_seed)
     extractor = extractor or KeypointExtractor()
     train = moving_object_exploration(model, n_train, replace_every, rng=np.random.default_rng(train_seed))
@@ -150,17 +155,17 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
     kps_test = render_keypoints(model, test['joints'], test['object'], extractor)
     frames_ms = 1e3 * (time.perf_counter() - t0) / (n_train + n_test)
     t0 = time.perf_counter()
-    learner = ArmStateLearner(**(learner_params or {})).fit(kps_train, train['joints'], train['contact'])
+    learner = ArmStateLearner(**(learner_params or {})).fit(kps_train, train['joints'], train[label])
     fit_s = time.perf_counter() - t0
-    X, c = learner.train_vectors_, train['contact']
+    X, c = learner.train_vectors_, train[label]
     t0 = time.perf_counter()
     X_test = learner.frame_vectors(kps_test)
     vector_ms = 1e3 * (time.perf_counter() - t0) / n_test
-    c_test, d_test = test['contact'], test['distance']
+    c_test, d_test = test[label], test['distance']
     gap = np.min(np.linalg.norm(test['object'][:, None] - np.unique(train['object'], axis=0)[None], axis=2), 1)
     roles = np.bincount(learner.label_roles_, minlength=4)
     result: Dict[str, object] = dict(
-        n_train=n_train, n_test=n_test, replace_every=replace_every, scene_seed=scene_seed, train_seed=train_seed,
+        n_train=n_train, n_test=n_test, replace_every=replace_every, touch=touch, scene_seed=scene_seed, train_seed=train_seed,
         test_seed=test_seed, train_placements=int(train['placement'].max() + 1),
         test_placements=int(test['placement'].max() + 1), train_contact=int(c.sum()), test_contact=int(c_test.sum()),
         train_contact_share=float(c.mean()), test_contact_share=float(c_test.mean()),
@@ -191,6 +196,7 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
         result[f'{method}_cv_candidates'] = sel['candidates']
     result.update(raw_vector_baselines(X, c, X_test, c_test, random_state=learner.random_state))
     result['_learner'], result['_test'], result['_kps_test'], result['_model'] = learner, test, kps_test, model
+    result['_train'], result['_kps_train'] = train, kps_train
     return result
 
 

@@ -37,7 +37,9 @@ the `recent_frames` frames before it.
 the keypoint vector the camera would see there - the robot's labels where the joint regression puts them, the
 others as seen in the current frame (hidden ones from the recent frames) - embeds it out of sample and applies the
 contact region. A cell is marked as collision when any lattice point at its centre or on the moves to its
-neighbours' centres is predicted in contact.
+neighbours' centres is predicted in contact (closeness >= `map_threshold`; the union over the cross makes a low
+threshold block far too much). The robot only learns the contact its touch sensor reports: with a touch sensor on
+the hand alone (the paper's label) the map cannot know where the links would hit the object.
 """
 from __future__ import annotations
 
@@ -174,7 +176,9 @@ class ArmStateLearner:
     cell_collision_fraction, map_margin, vectorizer_params (dict for KeypointVectorizer), random_state, n_folds
     (cross-validation of the region), representation ('relative' or 'absolute'), self_r2 and external_r2 (label
     roles), min_motion [px] (below: a static label), recent_frames (how many preceding frames may stand in for a
-    hidden external label), map_resolution (lattice points per cell side in predict_collision_map; even).
+    hidden external label), map_resolution (lattice points per cell side in predict_collision_map; even),
+    map_threshold (closeness at or above which predict_collision_map counts a lattice point as contact; chosen by
+    mm_bringup.tune_arm).
     Learned attributes: vectorizer_, label_roles_, joint_coef_ (joint regression of every label), label_r2_,
     label_motion_, label_mean_ (mean training position of every label), lle_, pca_, region_ and
     pca_region_ (ContactSphere or ContactQuadric), selection_ and pca_selection_ (the cross-validated choice: model, C,
@@ -188,7 +192,8 @@ class ArmStateLearner:
                  cell_min_frames: int = 3, cell_collision_fraction: float = 0.1, map_margin: float = 0.1,
                  vectorizer_params: Optional[Dict] = None, random_state: Optional[int] = 0, n_folds: int = 5,
                  representation: str = 'relative', self_r2: float = 0.9, external_r2: float = 0.3,
-                 min_motion: float = 10.0, recent_frames: int = 5, map_resolution: int = 4):
+                 min_motion: float = 10.0, recent_frames: int = 5, map_resolution: int = 4,
+                 map_threshold: float = 0.5):
         lim = np.asarray(joint_limits, dtype=float)
         if lim.shape != (2, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
             raise ValueError('joint_limits must be ((lo0, hi0), (lo1, hi1)) with finite lo < hi')
@@ -204,6 +209,8 @@ class ArmStateLearner:
             raise ValueError(f'representation must be one of {REPRESENTATIONS}')
         if not 0.0 <= external_r2 < self_r2 <= 1.0 or min_motion < 0 or recent_frames < 0:
             raise ValueError('0 <= external_r2 < self_r2 <= 1, min_motion >= 0 and recent_frames >= 0 are required')
+        if not -10.0 < map_threshold < 10.0:
+            raise ValueError('map_threshold must be in (-10, 10)')
         if map_resolution < 2 or map_resolution % 2:
             raise ValueError('map_resolution must be even and >= 2 (the lattice must hold the cell centres)')
         unknown = set(vectorizer_params or {}) - set(_VECTORIZER_PARAMS)
@@ -229,6 +236,7 @@ class ArmStateLearner:
         self.min_motion = float(min_motion)
         self.recent_frames = int(recent_frames)
         self.map_resolution = int(map_resolution)
+        self.map_threshold = float(map_threshold)
 
     def get_params(self) -> Dict[str, object]:
         """The constructor's parameters (JSON-able), as saved with the model."""
@@ -238,7 +246,7 @@ class ArmStateLearner:
                     map_margin=self.map_margin, random_state=self.random_state, n_folds=self.n_folds,
                     representation=self.representation, self_r2=self.self_r2, external_r2=self.external_r2,
                     min_motion=self.min_motion, recent_frames=self.recent_frames,
-                    map_resolution=self.map_resolution)
+                    map_resolution=self.map_resolution, map_threshold=self.map_threshold)
 
     # --- fitting ------------------------------------------------------------------------------------------
     def fit(self, keypoints: Sequence[FrameKeypoints], joints, contact, stamps=None) -> 'ArmStateLearner':
@@ -415,8 +423,8 @@ class ArmStateLearner:
                        recent: Sequence[FrameKeypoints] = ()) -> Dict[str, np.ndarray]:
         """Predicted states of the frames the camera would see with the arm at `joints` (n, 2) and everything else
         as in `frame` (hidden labels from `recent`, oldest first): the robot's labels where the joint regression
-        puts them. Returns dict(vectors (n, d) imputed, embedding (n, k), closeness (n,), collision (n,) - with
-        the planning margin map_margin - and external_seen (labels of the object side known))."""
+        puts them. Returns dict(vectors (n, d) imputed, embedding (n, k), closeness (n,), collision (n,) - closeness
+        at least map_threshold - and external_seen (labels of the object side known))."""
         if not hasattr(self, 'region_'):
             raise RuntimeError('ArmStateLearner is not fitted')
         q = np.asarray(joints, dtype=float).reshape(-1, 2)
@@ -430,7 +438,7 @@ class ArmStateLearner:
         X = self.imputer_.transform(self._vectors_of_positions(P))
         Y = self.lle_transform(X)
         close = self.region_.closeness(Y)
-        return dict(vectors=X, embedding=Y, closeness=close, collision=close >= -self.map_margin,
+        return dict(vectors=X, embedding=Y, closeness=close, collision=close >= self.map_threshold,
                     external_seen=int(np.isfinite(filled[self.external_labels_, 0]).sum()))
 
     def predict_collision_map(self, frame: FrameKeypoints, recent: Sequence[FrameKeypoints] = ()
@@ -442,7 +450,7 @@ class ArmStateLearner:
         lattice = self.map_lattice()
         pred = self.predict_frames(frame, lattice.reshape(-1, 2), recent)
         close = pred['closeness'].reshape(lattice.shape[:2])
-        collision, closeness = cross_max(close >= -self.map_margin, close, self.grid_shape, self.map_resolution)
+        collision, closeness = cross_max(close >= self.map_threshold, close, self.grid_shape, self.map_resolution)
         return dict(collision=collision, closeness=closeness, lattice_joints=lattice, lattice_closeness=close,
                     external_labels=int(len(self.external_labels_)), external_seen=pred['external_seen'],
                     new_frames=1 + len(recent))

@@ -208,7 +208,7 @@ def test_predict_collision_map_for_an_unseen_placement(moving):
         assert np.all(np.isfinite(out['closeness']))
         lattice = out['lattice_joints']
         truth = np.array([[model.in_contact(q) for q in row] for row in lattice])
-        pred = out['lattice_closeness'] >= -learner.map_margin
+        pred = out['lattice_closeness'] >= learner.map_threshold
         accuracy.append(np.mean(pred == truth))
         # closeness is higher where the hand is near the object than where it is far from it
         dist = np.array([[model.hand_object_distance(q) for q in row] for row in lattice])

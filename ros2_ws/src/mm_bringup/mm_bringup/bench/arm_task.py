@@ -1,33 +1,35 @@
-"""Arm benchmark (results/arm_task.json): paper Section 3 measured on the simulated arm.
+"""Arm benchmark (results/arm_task.json): paper Section 3 measured in-process on the simulated arm, with the object
+moving as in the paper. (Planning through the ROS graph is the arm_reach benchmark.)
 
-Parts and where they run:
-- Tables 1-2 (held-out collision prediction, LLE vs PCA): plain modules in this process
-  (mm_manifold.arm_evaluation: random joint configurations with a contact-biased share, 70/30 split). Everything
-  that is tuned - LLE's n_neighbors, the region's radius / threshold, the region model - is chosen by 5-fold
-  cross-validation on the 70 % training frames; the 30 % held-out frames only score the result. Keys:
-  `lle_*` / `pca_*` the region model chosen by cross-validation (`*_region`), `lle_sphere_*` / `pca_sphere_*` the
-  paper's sphere (centre = mean of the contact frames), `*_ellipsoid_*` the Mahalanobis ellipsoid, `*_quadric_*`
-  the quadric fitted by logistic regression; each with its own cross-validated n_neighbors and radius, and the
-  cross-validation estimate (`*_cv_tpr`, `*_cv_fpr`) next to the held-out rates.
-- Synthetic check (Section 3.4): plain modules; |Spearman| of the best LLE coordinate with hand-object distance.
-- DP success over random object placements: plain modules in this process, the same code the nodes run
-  (mm_planner.arm_exploration explorer -> mm_sim.arm_motion joint motion -> ArmModel frames -> SIFT ->
-  mm_manifold.arm_learning.ArmStateLearner collision and closeness maps -> mm_planner.value_iteration.DPPlanner with
-  its default clearance reward, executed cell by cell). A placement counts when a contact-free path between the
-  chosen start and goal exists on the ground-truth cell map and the straight joint-space move between them would
-  touch the object ("object in the way"). Success = the goal cell centre is reached and the hand never touches the
-  object, checked on the swept motion of every simulator step every 0.02 rad (stricter than arm_sim's touch sensor,
-  which reads the pose of each frame; that reading is counted too, `dp_sim_contact_count`). The learner's contact
-  region is chosen per placement by cross-validation on the exploration frames (`dp_region_counts`).
-- Full mode also runs one episode through the ROS graph (arm_sim + image_embedding + dp_planner as processes, see
-  mm_bringup.arm_demo) and reports it under `graph_episode`.
+Parts:
+- Tables 1-2 (collision prediction): mm_manifold.arm_evaluation. Exploration frames with the object re-placed
+  every 10 frames (placements from generator TRAIN_SEED), test frames from placements of another generator
+  (TEST_SEED), never seen in training; the same frames for every method. Keys `lle_sphere_*` / `pca_sphere_*` (the
+  paper's sphere: centre = mean of the contact frames, radius by cross-validation on the training frames),
+  `lle_best_*` / `pca_best_*` (the region model with the best cross-validated TPR - FPR among sphere, Mahalanobis
+  ellipsoid and quadric), `raw_sphere_*` / `raw_knn_*` (no embedding), each with tp / fn / fp / tn / tpr / fpr, and
+  the class balance (`eval_*_contact`). The learner's settings (representation, LLE method, dimensions) come from
+  mm_bringup.tune_arm, run on scenes and seeds disjoint from these.
+- Planning before moving (`plan_*`): the learner fitted for the tables is KEPT; for each of PLACEMENTS new object
+  placements (generator PLACEMENT_SEED) with the object in the way of the straight move between a start and a goal
+  cell (chosen on the ground-truth map, which also must hold a contact-free path), the robot standing at the start
+  takes ONE frame and builds the collision map with ArmStateLearner.predict_collision_map. The map is scored per
+  cell against the ground truth (a cell is blocked when any arm part touches the object at the cell centre or on
+  the moves to the neighbours' centres; also against the hand alone, which is what the touch sensor teaches), and
+  the DP plan (mm_planner.value_iteration, the paper's rewards, and dp_planner's default clearance reward) is
+  executed cell by cell; success = the goal cell centre is reached and no arm part touches the object anywhere
+  along the executed motion (checked every 0.02 rad). The same is measured (`plan_any_part_*`) for a learner
+  fitted on the same exploration frames labelled by a touch sensor covering the whole arm (what arm_sim would need
+  to publish for the robot to learn where its links hit the object).
+- Synthetic check (Section 3.4): 1000 frames, 10 object + 10 hand + 5 background keypoints, object and hand both
+  uniform, 10 % removed; best |Spearman| of one LLE / PCA axis with the hand-object distance.
 """
 from __future__ import annotations
 
 import time
 from collections import deque
 from pathlib import Path
-from typing import Dict, Optional, Tuple
+from typing import Dict, Optional
 
 import numpy as np
 from scipy.stats import spearmanr
@@ -35,44 +37,35 @@ from threadpoolctl import threadpool_limits
 
 from mm_manifold.arm_evaluation import evaluate_collision_prediction
 from mm_manifold.arm_learning import ArmStateLearner
-from mm_manifold.embedding import REGION_MODELS, ImageEmbedding, synthetic_keypoint_frames
-from mm_manifold.keypoints import KeypointExtractor, KeypointVectorizer
-from mm_planner.arm_exploration import ArmExplorer
+from mm_manifold.embedding import ImageEmbedding, synthetic_keypoint_frames
+from mm_manifold.keypoints import KeypointExtractor, NearestImputer
 from mm_planner.value_iteration import DPPlanner, JointGrid
-from mm_sim.arm_model import ArmModel
-from mm_sim.arm_motion import JointMotion, swept_contact
+from mm_sim.arm_motion import JointMotion, sweep
 
 NAME = 'arm_task'
-START_JOINTS = (-2.0, 1.1)
+SCENE_SEED, TRAIN_SEED, TEST_SEED, PLACEMENT_SEED = 0, 1, 2, 3       # benchmark only; tune_arm uses others
+PLACEMENTS = 40
+# Learner settings chosen by mm_bringup.tune_arm (results/tune_arm.json) on scenes and seeds disjoint from the above.
+LEARNER_PARAMS = dict(representation='relative', lle_method='standard', n_components=4)
 
 
-# --- shared helpers (also used by the figures) -------------------------------------------------------------------
-def explore(model: ArmModel, n_frames: int, seed: int, motion: Optional[JointMotion] = None,
-            start=START_JOINTS) -> Tuple[np.ndarray, np.ndarray]:
-    """Joint angles and touch-sensor readings (contact in the pose of each frame) of `n_frames` exploration steps,
-    exactly as dp_planner drives arm_sim during its exploration phase."""
-    motion = motion or JointMotion(model)
-    explorer = ArmExplorer(model.joint_limits, random_state=seed)
-    q = np.asarray(start, dtype=float)
-    joints, contact = [], []
-    for _ in range(n_frames):
-        c = model.in_contact(q)
-        joints.append(q.copy())
-        contact.append(c)
-        q, _ = motion.step(q, explorer.next_command(q, c))
-    return np.array(joints), np.array(contact)
-
-
-def truth_cell_map(model: ArmModel, grid: JointGrid, samples: int = 7) -> np.ndarray:
-    """Ground truth: a cell is blocked if the hand touches the object anywhere on a samples x samples lattice
-    covering the cell (evaluation only)."""
-    blocked = np.zeros(grid.shape, bool)
-    frac = np.linspace(0.0, 1.0, samples)
+# --- ground truth and execution (evaluation only) ------------------------------------------------------------------
+def truth_move_maps(model, grid: JointGrid, resolution: float = 0.02):
+    """(any part, hand only) (rows, cols) bool: the arm touches the object at the cell centre or on a straight
+    move from it to a neighbour's centre."""
+    any_part = np.zeros(grid.shape, bool)
+    hand = np.zeros(grid.shape, bool)
     for r in range(grid.rows):
         for c in range(grid.cols):
-            lo = grid.limits[:, 0] + np.array([r, c]) * grid.step
-            blocked[r, c] = any(model.in_contact(lo + np.array([a, b]) * grid.step) for a in frac for b in frac)
-    return blocked
+            a = grid.centre((r, c))
+            for dr, dc in ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1)):
+                n = (r + dr, c + dc)
+                if not (0 <= n[0] < grid.rows and 0 <= n[1] < grid.cols):
+                    continue
+                s = sweep(model, a, grid.centre(n), resolution)
+                any_part[r, c] |= s.any_contact
+                hand[r, c] |= s.hand_contact
+    return any_part, hand
 
 
 def free_path_exists(blocked: np.ndarray, start, goal) -> bool:
@@ -92,32 +85,34 @@ def free_path_exists(blocked: np.ndarray, start, goal) -> bool:
     return False
 
 
-def choose_task(model: ArmModel, grid: JointGrid, blocked: np.ndarray, rng: np.random.Generator,
-                tries: int = 400):
+def choose_task(model, grid: JointGrid, blocked: np.ndarray, rng: np.random.Generator, tries: int = 400):
     """Start and goal cells, both free, with a contact-free path between them and the object in the way of the
-    straight move; None if no such pair was found."""
+    straight move (any arm part); None if no such pair was found."""
     free = np.argwhere(~blocked)
+    if len(free) < 2:
+        return None
     for _ in range(tries):
         s, g = (tuple(int(v) for v in free[i]) for i in rng.choice(len(free), 2, replace=False))
         if abs(s[0] - g[0]) + abs(s[1] - g[1]) < 3:
             continue
-        if swept_contact(model, grid.centre(s), grid.centre(g)) and free_path_exists(blocked, s, g):
+        if sweep(model, grid.centre(s), grid.centre(g)).any_contact and free_path_exists(blocked, s, g):
             return s, g
     return None
 
 
-def execute_plan(model: ArmModel, grid: JointGrid, planner: DPPlanner, start, goal, motion: JointMotion,
-                 max_steps: int = 400, tolerance: float = 1e-6) -> Dict[str, object]:
+def execute_plan(model, grid: JointGrid, planner: DPPlanner, start, goal, motion: JointMotion,
+                 max_steps: int = 400) -> Dict[str, object]:
     """Follow the planner from the start cell centre cell by cell, as dp_planner does: command the centre of the
-    next cell, step the arm until it is there, repeat until at the goal cell centre. Contact is checked on the swept
-    motion of every step."""
+    next cell, step the arm until it is there, repeat until at the goal cell centre. Contact of every arm part is
+    checked on the swept motion of every step."""
     planner.set_goal(goal)
     q = grid.centre(start)
-    touched, touched_at_frame, steps, trajectory = False, False, 0, [q.copy()]
+    contact, hand_contact, steps, trajectory = False, False, 0, [q.copy()]
+    min_clearance = np.inf
     target = q
     while steps < max_steps:
         cell = grid.cell_of(q)
-        if np.max(np.abs(q - target)) <= tolerance:
+        if np.max(np.abs(q - target)) <= 1e-6:
             if cell == tuple(goal):
                 break
             nxt = planner.next_cell(cell)
@@ -125,148 +120,131 @@ def execute_plan(model: ArmModel, grid: JointGrid, planner: DPPlanner, start, go
                 break
             target = grid.centre(nxt)
         new = motion.step(q, target)[0]
-        touched |= swept_contact(model, q, new, 0.02)
-        touched_at_frame |= model.in_contact(new)
+        s = sweep(model, q, new, 0.02)
+        contact |= s.any_contact
+        hand_contact |= s.hand_contact
+        min_clearance = min(min_clearance, s.min_clearance)
         q = new
         trajectory.append(q.copy())
         steps += 1
     reached = grid.cell_of(q) == tuple(goal) and np.max(np.abs(q - grid.centre(goal))) <= 1e-6
-    return dict(reached=bool(reached), contact=bool(touched), contact_at_frames=bool(touched_at_frame), steps=steps,
-                trajectory=np.array(trajectory))
+    return dict(reached=bool(reached), contact=bool(contact), hand_contact=bool(hand_contact), steps=steps,
+                min_clearance=float(min_clearance), trajectory=np.array(trajectory))
 
 
-def learn_placement(seed: int, n_frames: int, extractor: KeypointExtractor, learner_params=None):
-    """Explore, render, extract and learn for one object placement (seed = textures, layout and object place)."""
-    model = ArmModel(random_state=seed)
-    joints, contact = explore(model, n_frames, seed)
-    t0 = time.perf_counter()
-    kps = [extractor(model.render(q)) for q in joints]
-    t_frames = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    learner = ArmStateLearner(random_state=seed, **(learner_params or {})).fit(kps, joints, contact)
-    return model, learner, dict(render_extract_s=t_frames, fit_s=time.perf_counter() - t0)
+def _cells(pred: np.ndarray, truth: np.ndarray) -> Dict[str, int]:
+    return dict(tp=int((pred & truth).sum()), fn=int((~pred & truth).sum()), fp=int((pred & ~truth).sum()),
+                tn=int((~pred & ~truth).sum()))
 
 
-def dp_placements(n_placements: int, n_frames: int, seed0: int = 1000, max_seeds: Optional[int] = None,
-                  log=print) -> Dict[str, object]:
-    """DP success over random placements (module docstring)."""
-    extractor = KeypointExtractor()
-    results, skipped, failures = [], [], []
-    solve_ms = []
-    cell_stats = dict(truth_blocked=0, predicted_blocked=0, missed=0, false=0)
-    seed = seed0
-    max_seeds = max_seeds or 3 * n_placements
-    while len(results) < n_placements and seed < seed0 + max_seeds:
-        seed += 1
-        t_place = time.perf_counter()
-        model = ArmModel(random_state=seed)
-        grid = JointGrid(*model.joint_limits)
-        blocked = truth_cell_map(model, grid)
-        task = choose_task(model, grid, blocked, np.random.default_rng(seed))
+def plan_before_moving(learner, model, n_placements: int = PLACEMENTS, seed: int = PLACEMENT_SEED,
+                       extractor: Optional[KeypointExtractor] = None, log=print) -> Dict[str, object]:
+    """Held-out placements with a kept model (module docstring). `model` is the scene the learner explored."""
+    extractor = extractor or KeypointExtractor()
+    rng = np.random.default_rng(seed)
+    grid = JointGrid(*learner.joint_limits, *learner.grid_shape)
+    motion = JointMotion(model)
+    rows, skipped = [], 0
+    totals = {k: dict(tp=0, fn=0, fp=0, tn=0) for k in ('any', 'hand')}
+    map_ms = []
+    while len(rows) < n_placements and skipped < 5 * n_placements:
+        model.set_object_position(model.random_object_position(rng))
+        truth_any, truth_hand = truth_move_maps(model, grid)
+        task = choose_task(model, grid, truth_any, rng)
         if task is None:
-            skipped.append(seed)
+            skipped += 1
             continue
-        try:
-            model, learner, timing = learn_placement(seed, n_frames, extractor)
-        except ValueError as exc:        # e.g. too few contact frames: counts as a failure of the method
-            failures.append(dict(seed=seed, reason=str(exc)))
-            results.append(dict(seed=seed, success=False, reached=False, contact=False, learned=False))
-            continue
-        planner = DPPlanner(grid)
-        planner.update_collision(learner.collision_map_, learner.closeness_map_)
+        frame = extractor(model.render(grid.centre(task[0])))
         t0 = time.perf_counter()
-        planner.set_goal(task[1])
-        solve_ms.append(1e3 * (time.perf_counter() - t0))
-        run = execute_plan(model, grid, planner, task[0], task[1], JointMotion(model))
-        pred = learner.collision_map_
-        cell_stats['truth_blocked'] += int(blocked.sum())
-        cell_stats['predicted_blocked'] += int(pred.sum())
-        cell_stats['missed'] += int((blocked & ~pred).sum())
-        cell_stats['false'] += int((pred & ~blocked).sum())
-        ok = run['reached'] and not run['contact']
-        results.append(dict(seed=seed, success=bool(ok), reached=run['reached'], contact=run['contact'],
-                            contact_at_frames=run['contact_at_frames'], steps=run['steps'], learned=True,
-                            region=learner.selection_['model'], start=list(task[0]), goal=list(task[1]),
-                            placement_s=time.perf_counter() - t_place, **timing))
-        if not ok:
-            failures.append(dict(seed=seed, reached=run['reached'], contact=run['contact']))
-        log(f'[arm_task] placement {len(results)}/{n_placements} seed {seed}: '
-            f"{'ok' if ok else 'FAIL'} ({run['steps']} steps, fit {timing['fit_s']:.1f} s)")
-    n = len(results)
-    return dict(
-        dp_success_rate=sum(r['success'] for r in results) / max(n, 1), dp_placements=n,
-        dp_contact_count=sum(r['contact'] for r in results), dp_reached_count=sum(r['reached'] for r in results),
-        dp_sim_contact_count=sum(r.get('contact_at_frames', False) for r in results),
-        dp_region_counts={m: sum(r.get('region') == m for r in results) for m in REGION_MODELS},
-        dp_skipped_no_valid_task=len(skipped), dp_failures=failures, dp_frames_per_placement=n_frames,
-        dp_solve_ms=float(np.median(solve_ms)) if solve_ms else None, dp_cell_stats=cell_stats,
-        dp_placement_fit_s=float(np.median([r['fit_s'] for r in results if r.get('learned')])) if n else None,
-        dp_placement_s=float(np.median([r['placement_s'] for r in results if r.get('learned')])) if n else None)
+        pred = learner.predict_collision_map(frame)
+        map_ms.append(1e3 * (time.perf_counter() - t0))
+        row = dict(object=[float(v) for v in model.object_position_], start=list(task[0]), goal=list(task[1]),
+                   new_frames=pred['new_frames'], external_seen=pred['external_seen'],
+                   predicted_blocked=int(pred['collision'].sum()), truth_blocked=int(truth_any.sum()))
+        for key, truth in (('any', truth_any), ('hand', truth_hand)):
+            cells = _cells(pred['collision'], truth)
+            row[f'cells_{key}'] = cells
+            for k, v in cells.items():
+                totals[key][k] += v
+        for name, clearance_reward in (('paper', 0.0), ('clearance', -5.0)):
+            planner = DPPlanner(grid, clearance_reward=clearance_reward)
+            planner.update_collision(pred['collision'], np.maximum(pred['closeness'], -1e6))
+            run = execute_plan(model, grid, planner, task[0], task[1], motion)
+            row[name] = dict(success=bool(run['reached'] and not run['contact']), reached=run['reached'],
+                             contact=run['contact'], hand_contact=run['hand_contact'], steps=run['steps'],
+                             min_clearance=run['min_clearance'])
+        rows.append(row)
+        log(f"[arm_task] placement {len(rows)}/{n_placements}: map cells wrong "
+            f"{row['cells_any']['fn'] + row['cells_any']['fp']}/96, paper rewards "
+            f"{'ok' if row['paper']['success'] else 'FAIL'}, clearance {'ok' if row['clearance']['success'] else 'FAIL'}")
+    n = max(len(rows), 1)
+    out: Dict[str, object] = dict(plan_placements=len(rows), plan_skipped_no_task=skipped,
+                                  plan_new_frames_per_placement=max([r['new_frames'] for r in rows], default=0),
+                                  plan_external_labels=int(len(learner.external_labels_)),
+                                  plan_external_seen_min=min([r['external_seen'] for r in rows], default=0),
+                                  plan_map_ms=float(np.median(map_ms)) if map_ms else None)
+    for key, t in totals.items():
+        pos, neg = t['tp'] + t['fn'], t['fp'] + t['tn']
+        out[f'plan_map_{key}'] = dict(t, accuracy=(t['tp'] + t['tn']) / max(pos + neg, 1),
+                                      tpr=t['tp'] / max(pos, 1), fpr=t['fp'] / max(neg, 1))
+    for name in ('paper', 'clearance'):
+        out[f'plan_{name}_success_rate'] = sum(r[name]['success'] for r in rows) / n
+        out[f'plan_{name}_contacts'] = sum(r[name]['contact'] for r in rows)
+        out[f'plan_{name}_reached'] = sum(r[name]['reached'] for r in rows)
+    out['plan_rows'] = rows
+    return out
 
 
-def synthetic_check(random_state: int = 0) -> Dict[str, float]:
-    """Paper Section 3.4: 1000 frames, 25 virtual keypoints (10 object, 10 hand, 5 background), 10 % removed,
-    nearest-neighbour imputation, 3-D LLE; the largest |Spearman| of one coordinate with hand-object distance."""
-    from mm_manifold.keypoints import NearestImputer
-    X, dist = synthetic_keypoint_frames(1000, random_state=random_state)
+def synthetic_check(random_state: int = 0, n_neighbors: int = 20) -> Dict[str, object]:
+    """Paper Section 3.4 with object and hand both moving uniformly: |Spearman| of the best single axis of a 3-D LLE
+    and of a 3-D PCA with the hand-object distance (nearest-neighbour imputation of the removed 10 %)."""
+    X, dist = synthetic_keypoint_frames(1000, move_object=True, random_state=random_state)
     Xf = NearestImputer().fit(X).transform(X)
-    t0 = time.perf_counter()
-    with threadpool_limits(1, user_api='blas'):
-        emb = ImageEmbedding(n_components=3, n_neighbors=20, random_state=random_state).fit(Xf)
-    fit_s = time.perf_counter() - t0
-    rho = [abs(spearmanr(emb.embedding_[:, i], dist)[0]) for i in range(3)]
-    return dict(synthetic_abs_spearman=float(max(rho)), synthetic_abs_spearman_per_axis=[float(r) for r in rho],
-                synthetic_lle_fit_s=fit_s)
+    out: Dict[str, object] = dict(synthetic_frames=1000, synthetic_missing_share=float(np.isnan(X).mean()))
+    for method in ('lle', 'pca'):
+        t0 = time.perf_counter()
+        with threadpool_limits(1, user_api='blas'):
+            Y = ImageEmbedding(3, n_neighbors, method, lle_method='standard', random_state=random_state).fit(
+                Xf).embedding_
+        rho = [abs(spearmanr(Y[:, i], dist)[0]) for i in range(3)]
+        out[f'synthetic_{method}_abs_spearman'] = float(max(rho))
+        out[f'synthetic_{method}_abs_spearman_per_axis'] = [float(r) for r in rho]
+        out[f'synthetic_{method}_fit_s'] = time.perf_counter() - t0
+    return out
 
 
-def lle_fit_timing(n_frames: int = 1000, seed: int = 0) -> Dict[str, float]:
-    """LLE fit time on `n_frames` imputed keypoint vectors of rendered frames (and the vectoriser's time)."""
-    model = ArmModel(random_state=seed)
-    joints = model.sample_joints(n_frames, np.random.default_rng(seed))
-    vec = KeypointVectorizer(random_state=seed)
-    frames = [model.render(q) for q in joints]
-    t0 = time.perf_counter()
-    kps = [vec.extract(f) for f in frames]
-    extract_ms = 1e3 * (time.perf_counter() - t0) / n_frames
-    t0 = time.perf_counter()
-    vec.fit(kps)
-    X = vec.fill_missing(vec.training_vectors_)
-    vec_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    with threadpool_limits(1, user_api='blas'):
-        ImageEmbedding(n_components=3, n_neighbors=20, random_state=seed).fit(X)
-    return dict(lle_fit_s=time.perf_counter() - t0, lle_fit_frames=n_frames,
-                vectorizer_fit_and_impute_s=vec_s, feature_extraction_ms_per_frame=extract_ms)
+def tables_result(ev: Dict[str, object]) -> Dict[str, object]:
+    """Flat JSON keys of an evaluate_collision_prediction result."""
+    out: Dict[str, object] = {}
+    for key in ('lle_best', 'lle_sphere', 'lle_ellipsoid', 'lle_quadric', 'pca_best', 'pca_sphere', 'pca_ellipsoid',
+                'pca_quadric', 'raw_sphere', 'raw_knn'):
+        for k, v in ev[key].items():
+            if isinstance(v, (int, float, str, bool)) or v is None:
+                out[f'{key}_{k}'] = v
+    for k, v in ev.items():
+        if not k.startswith('_') and not k.startswith(('lle_', 'pca_', 'raw_')):
+            out[f'eval_{k}'] = v
+    out['lle_cv_candidates'], out['pca_cv_candidates'] = ev['lle_cv_candidates'], ev['pca_cv_candidates']
+    return out
 
 
 def run(output_dir: Path, quick: bool) -> dict:
-    n_eval = 400 if quick else 1000
-    out: Dict[str, object] = dict(
-        ran_through_graph=('graph_episode (full mode only): arm_sim + image_embedding + dp_planner processes'),
-        ran_in_process=['tables (lle/pca tpr/fpr)', 'synthetic check', 'dp_success_rate over placements', 'timings'])
-    ev = evaluate_collision_prediction(n_frames=n_eval, random_state=0)
-    for method in ('lle', 'pca'):
-        for key in (method,) + tuple(f'{method}_{m}' for m in REGION_MODELS):
-            c = ev[key]
-            for k in ('tpr', 'fpr', 'tp', 'fn', 'fp', 'tn', 'region', 'n_neighbors', 'C', 'radius', 'relative_radius',
-                      'cv_tpr', 'cv_fpr', 'closeness_distance_spearman'):
-                out[f'{key}_{k}'] = c[k]
-        out[f'{method}_selection_s'] = ev[method]['select_s']
-        out[f'{method}_cv_candidates'] = ev[f'{method}_cv_candidates']
-    out.update(eval_frames=ev['n_frames'], eval_train=ev['n_train'], eval_test=ev['n_test'],
-               eval_contact_share=ev['contact_share'], eval_labels=ev['n_labels'],
-               eval_observed_share=ev['observed_share'], render_ms_per_frame=ev['render_ms'],
-               vectorize_ms_per_frame=ev['vectorize_ms'], vectorizer_fit_s=ev['vectorizer_fit_s'])
+    t0 = time.perf_counter()
+    extractor = KeypointExtractor()
+    ev = evaluate_collision_prediction(400 if quick else 1000, 150 if quick else 300, SCENE_SEED, TRAIN_SEED,
+                                       TEST_SEED, learner_params=LEARNER_PARAMS, extractor=extractor)
+    out: Dict[str, object] = dict(ran_in_process=['tables', 'plan before moving', 'synthetic check'],
+                                  seeds=dict(scene=SCENE_SEED, train=TRAIN_SEED, test=TEST_SEED,
+                                             placements=PLACEMENT_SEED), learner_params=LEARNER_PARAMS)
+    out.update(tables_result(ev))
+    out['tables_s'] = time.perf_counter() - t0
+    learner = ev['_learner']
+    out['learner_fit_s'] = ev['learner_fit_s']
+    n_plan = 8 if quick else PLACEMENTS
+    out.update(plan_before_moving(learner, ev['_model'], n_plan, extractor=extractor))
+    whole_arm = ArmStateLearner(**LEARNER_PARAMS).fit(ev['_kps_train'], ev['_train']['joints'],
+                                                       ev['_train']['any_contact'])
+    out.update({k.replace('plan_', 'plan_any_part_', 1): v for k, v in
+                plan_before_moving(whole_arm, ev['_model'], n_plan, extractor=extractor).items()})
     out.update(synthetic_check())
-    out.update(lle_fit_timing(400 if quick else 1000))
-    out.update(dp_placements(4 if quick else 100, 300 if quick else 500))
-    if not quick:
-        try:
-            from mm_bringup.arm_demo import run_arm_demo
-            from mm_bringup.process_graph import ProcessGraph
-            with ProcessGraph(log_dir=Path(output_dir) / 'arm_bench_logs') as graph:
-                summary = run_arm_demo(graph, print, timeout_s=240.0)
-            out['graph_episode'] = {k: v for k, v in summary.items() if isinstance(v, (int, float, str, bool))}
-        except Exception as exc:      # the in-process numbers stay valid; say what happened
-            out['graph_episode'] = dict(error=repr(exc))
     return out
