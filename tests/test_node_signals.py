@@ -31,7 +31,7 @@ def _signal_cycles(graph: ProcessGraph, ros: RosHarness, package: str, executabl
     node = next(n for n in graph.nodes if n.executable == executable)
     for cycle, sig in enumerate(SIGNALS):
         # Let it work a varying while: some signals land during start-up work, some mid-loop.
-        time.sleep(rng.uniform(0.05, 0.8))
+        time.sleep(rng.uniform(0.05, 0.5))
         if node.process.poll() is not None:
             failures.append(f'{executable}: died before signal {cycle} with {node.process.returncode}:\n'
                             f'{graph.log_tail(node)}')
@@ -63,12 +63,14 @@ def test_every_node_of_a_running_graph_exits_cleanly_on_signals(name, tmp_path):
     ros = RosHarness()
     observer = ros.node(f'signal_observer_{name}')
     failures = []
+    # The recorder records the loop (mid-write signals); each restart replaces the bag it wrote.
+    nodes = GRAPHS[name] + [('mm_bringup', 'recorder', {'output': str(tmp_path / 'bag'), 'overwrite': True})]
     with ProcessGraph(log_dir=tmp_path / 'logs') as graph:
-        for package, executable, parameters in GRAPHS[name]:
+        for package, executable, parameters in nodes:
             graph.start(package, executable, parameters)
         try:
-            assert ros.spin_until(lambda: {e for _, e, _ in GRAPHS[name]} <= set(observer.get_node_names()), 60.0)
-            for package, executable, parameters in GRAPHS[name]:
+            assert ros.spin_until(lambda: {e for _, e, _ in nodes} <= set(observer.get_node_names()), 60.0)
+            for package, executable, parameters in nodes:
                 failures += _signal_cycles(graph, ros, package, executable, parameters, rng)
             for node in [n for n in graph.nodes if n.process.poll() is None]:
                 rc = graph.stop(node)
