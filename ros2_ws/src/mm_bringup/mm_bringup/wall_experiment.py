@@ -53,7 +53,7 @@ def explore(robot: WheeledRobot, steps: int, start=PAPER_START, random_state: in
     R, U, P = [], [], []
     for _ in range(steps):
         r = robot.read(pose)
-        u = agent.step(Observation(state=True, readings=r, bumped=bumped)).command
+        u = agent.step(Observation(state=True, stamp=len(R), readings=r, bumped=bumped)).command
         if u is None:
             break
         R.append(r)
@@ -113,8 +113,8 @@ def run_episode(robot: WheeledRobot, model: SensorManifoldModel, start, goal_rea
         ep.spaces.append(space)
         ep.coordinates.append(None if coords is None else coords.copy())
         ep.readings.append(r)
-        decision = agent.step(Observation(state=True, space=space, coordinates=coords, sensor2_estimate=s2,
-                                          readings=r))
+        decision = agent.step(Observation(state=True, stamp=len(ep.poses) - 1, space=space, coordinates=coords,
+                                          sensor2_estimate=s2, readings=r))
         if decision.phase == ControllerStatus.PHASE_GOAL_REACHED:
             ep.reached = True
             break

@@ -212,7 +212,7 @@ class SwitchingControllerNode(Node):
         self.newest_ns = stamp
         self.state_stamp = msg.header.stamp
         self.waiting = Observation(
-            state=True, space=int(msg.active_space),
+            state=True, stamp=msg.header.stamp, space=int(msg.active_space),
             coordinates=np.asarray(msg.coordinates, dtype=float) if len(msg.coordinates) else None,
             sensor2_estimate=np.asarray(msg.sensor2_estimate, dtype=float) if len(msg.sensor2_estimate) else None,
             readings=np.array(list(msg.sensor1) + list(msg.sensor2), dtype=float),
@@ -231,12 +231,13 @@ class SwitchingControllerNode(Node):
         for line in decision.log:
             self.get_logger().info(line)
         if decision.command is not None:
-            self.last_answered = self.newest_ns
+            self.last_answered = _ns(decision.stamp)
             self.bumper_since_command = False
             self.command_pub.publish(Float64MultiArray(data=[float(v) for v in decision.command]))
         msg = ControllerStatus()
         # Stamped with the state it answers (the sim clock on /clock may lag behind the state that just arrived).
-        msg.header.stamp = self.state_stamp if self.state_stamp is not None else self.get_clock().now().to_msg()
+        stamp = decision.stamp if decision.stamp is not None else self.state_stamp
+        msg.header.stamp = stamp if stamp is not None else self.get_clock().now().to_msg()
         msg.phase, msg.phase_name, msg.detail = decision.phase, decision.phase_name, decision.detail
         msg.error, msg.target, msg.step = float(decision.error), list(decision.target), decision.step
         msg.goal_stamp = decision.goal_stamp if decision.goal_stamp is not None else Time()

@@ -43,6 +43,7 @@ class Goal:
 class Observation:
     """One step's learner state (absent when the observation only carries events) and the events since the last."""
     state: bool = False
+    stamp: Any = None                              # the state's stamp (opaque), reported back with its answer
     space: int = ManifoldState.SPACE_NONE
     coordinates: Optional[np.ndarray] = None
     sensor2_estimate: Optional[np.ndarray] = None
@@ -61,6 +62,7 @@ class Decision:
     detail: str
     step: int
     goal_stamp: Any
+    stamp: Any = None                               # stamp of the state answered (None: no state this step)
     error: float = math.nan
     target: Tuple[float, ...] = ()
     goal_accepted: Optional[bool] = None
@@ -111,12 +113,12 @@ class WallAgent:
         if observation.goal is not None:
             accepted, reason = self._take_goal(observation.goal)
         state = observation if observation.state else self.pending
-        command, error, target = None, math.nan, ()
+        command, error, target, stamp = None, math.nan, (), None
         commanding = self.phase == ControllerStatus.PHASE_EXPLORING or self.phase in REACHING.values()
         if state is not None and (observation.state or commanding):
-            self.pending = state
+            self.pending, stamp = state, state.stamp
             command, error, target = self._answer(state)
-        return Decision(command, self.phase, self.detail, self.phase_step, self.goal_stamp, error, target,
+        return Decision(command, self.phase, self.detail, self.phase_step, self.goal_stamp, stamp, error, target,
                         accepted, reason, self._log)
 
     # --- events -----------------------------------------------------------------------------------------------
