@@ -20,8 +20,10 @@ Planning is value iteration on the rows x cols joint grid (mm_planner.value_iter
 rewards (0 at the goal cell, -100 for entering a predicted collision cell, -1 per step) plus the clearance reward
 (`clearance_reward`, default -5: free cells near the learned contact region cost up to that much more, see
 value_iteration; 0 gives the paper's rewards only). FAILED names the reason: no collision-free path on the map, the
-next cell predicted as collision, or `max_execution_steps` passed. Execution commands the centre of the next cell
-until the arm is within `arrival_tolerance` of it.
+next cell predicted as collision, or `max_execution_steps` passed. With `through_predicted_collision` the agent
+instead follows the DP policy as the paper's rewards alone would (collision cells penalised, not forbidden: the path
+with the fewest predicted collisions) when no collision-free path exists; off by default. Execution commands the
+centre of the next cell until the arm is within `arrival_tolerance` of it.
 """
 from __future__ import annotations
 
@@ -61,7 +63,7 @@ class Transition:
 class ArmAgent:
     """Parameters: joint_limits ((lo0, hi0), (lo1, hi1)) [rad], grid_shape (rows, cols), exploration_steps,
     exploration_seed, contact_share, contact_spread, max_execution_steps, arrival_tolerance, step_reward,
-    collision_reward, goal_reward, clearance_reward, clearance (module docstring).
+    collision_reward, goal_reward, clearance_reward, clearance, through_predicted_collision (module docstring).
     State: phase_, detail_, phase_step_, explored_, goal_ (joints), goal_cell_, goal_stamp_ (ns of the goal being or
     last pursued), target_, map_stamp_ (frame of the map in use), maps_received_, commands_sent_."""
 
@@ -69,7 +71,7 @@ class ArmAgent:
                  exploration_seed: Optional[int] = 0, contact_share: float = 0.25, contact_spread: float = 0.08,
                  max_execution_steps: int = 300, arrival_tolerance: float = 1e-3, step_reward: float = -1.0,
                  collision_reward: float = -100.0, goal_reward: float = 0.0, clearance_reward: float = -5.0,
-                 clearance: float = 1.0):
+                 clearance: float = 1.0, through_predicted_collision: bool = False):
         if exploration_steps < 0 or max_execution_steps < 1 or not arrival_tolerance > 0:
             raise ValueError('exploration_steps >= 0, max_execution_steps >= 1 and arrival_tolerance > 0 required')
         lim = np.asarray(joint_limits, dtype=float)
@@ -81,6 +83,7 @@ class ArmAgent:
         self.exploration_steps = int(exploration_steps)
         self.max_execution_steps = int(max_execution_steps)
         self.arrival_tolerance = float(arrival_tolerance)
+        self.through_predicted_collision = bool(through_predicted_collision)
         self.phase_ = PHASE_EXPLORING if self.exploration_steps > 0 else PHASE_LEARNING
         self.detail_ = 'start'
         self.phase_step_ = 0
@@ -221,7 +224,7 @@ class ArmAgent:
             if nxt is None:
                 self._set_phase(PHASE_FAILED, f'no move from cell {cell}')
                 return None
-            if self.planner.collision_[nxt]:
+            if self.planner.collision_[nxt] and not self.through_predicted_collision:
                 self._set_phase(PHASE_FAILED, f'next cell {nxt} is predicted as collision')
                 return None
             self.target_ = self.grid.centre(nxt)
@@ -247,11 +250,17 @@ class ArmAgent:
             return False
         start = self.grid.cell_of(self.joints_)
         path = self.planner.plan(start, allow_collision=False)
+        crossing = ''
+        if path is None and self.through_predicted_collision:
+            path = self.planner.plan(start, allow_collision=True)
+            if path is not None:
+                crossed = sum(bool(self.planner.collision_[c]) for c in path[1:])
+                crossing = f', through {crossed} predicted collision cells'
         if path is None:
             blocked = int(self.planner.collision_.sum())
             self._set_phase(PHASE_FAILED, f'no collision-free path from cell {start} to cell {self.goal_cell_} on '
                                           f'the map of frame {self.map_stamp_} ({blocked} collision cells; {why})')
             return False
         self._set_phase(PHASE_EXECUTING, f'{why}: {len(path) - 1} moves from cell {start} to cell '
-                                         f'{self.goal_cell_} on the map of frame {self.map_stamp_}')
+                                         f'{self.goal_cell_} on the map of frame {self.map_stamp_}{crossing}')
         return True

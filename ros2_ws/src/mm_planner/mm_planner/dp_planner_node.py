@@ -103,7 +103,11 @@ class DpPlannerNode(Node):
                                      'contact region\'s surface (0 = the paper\'s rewards only)', min_value=-1000.0,
                                      max_value=0.0, read_only=True),
             clearance=declare(self, 'clearance', 1.0, 'Closeness below -clearance costs nothing extra',
-                              min_value=1e-3, max_value=100.0, read_only=True))
+                              min_value=1e-3, max_value=100.0, read_only=True),
+            through_predicted_collision=declare(self, 'through_predicted_collision', False, 'When no '
+                                                'collision-free path exists on the map, follow the DP policy through '
+                                                'predicted collision cells (paper rewards) instead of FAILING',
+                                                read_only=True))
         self.wait_for_embedding = declare(self, 'wait_for_embedding', True,
                                           'Pace commands on arm/embedding/state of the same frame')
         self.embedding_timeout = declare(self, 'embedding_timeout', 5.0, 'Wall seconds to wait for an embedding '

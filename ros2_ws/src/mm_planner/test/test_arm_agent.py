@@ -135,3 +135,18 @@ def test_goal_before_learning_is_pursued_once_the_map_is_in():
     agent.set_map(np.zeros(grid.shape, bool), None, 3)
     assert agent.phase_ == A.PHASE_PLANNING
     assert agent.step(obs(3, q)) is not None and agent.phase_ == A.PHASE_EXECUTING
+
+
+def test_through_predicted_collision_follows_the_fewest_collision_path_when_walled_off():
+    agent = learned_agent(through_predicted_collision=True)
+    grid = agent.grid
+    blocked = np.zeros(grid.shape, bool)
+    blocked[:, 6] = True
+    q = grid.centre((3, 2))
+    agent.set_goal(grid.centre((3, 9)), stamp=5)
+    agent.step(obs(1, q))
+    agent.set_map(blocked, None, agent.take_map_request())
+    visited, _ = run_ideal(agent, q, 1)
+    assert agent.phase_ == A.PHASE_GOAL_REACHED, agent.detail_
+    assert 'through 1 predicted collision cells' in agent.pop_transitions()[-2].detail
+    assert sum(blocked[grid.cell_of(v)] for v in visited) >= 1

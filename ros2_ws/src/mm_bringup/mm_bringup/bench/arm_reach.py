@@ -32,27 +32,29 @@ PLACEMENT_SEED0 = 70_000          # held-out placements: seeds 70001, 70002, ...
 
 
 def run(output_dir: Path, quick: bool, placements: Optional[int] = None, exploration_steps: Optional[int] = None,
-        object_period_frames: int = 10, budget_s: float = 840.0) -> dict:
+        object_period_frames: int = 10, budget_s: float = 840.0, scene_seed: int = SCENE_SEED,
+        placement_seed0: int = PLACEMENT_SEED0, planner_params: Optional[Dict] = None) -> dict:
+    """The benchmark (module docstring); mm_bringup.tune_arm_reach calls it with seeds of its own."""
     from mm_sim.arm_model import ArmModel
     n_placements = placements or (4 if quick else 30)
     n_explore = exploration_steps or (300 if quick else 600)
     t_start = time.monotonic()
     deadline = t_start + budget_s
-    scene = ArmModel(random_state=SCENE_SEED)
+    scene = ArmModel(random_state=scene_seed)
     out: Dict[str, object] = dict(
         ran_through_graph='arm_sim + image_embedding + dp_planner as processes, lockstep; driver = this process',
-        scene_seed=SCENE_SEED, placement_seeds_from=PLACEMENT_SEED0 + 1, exploration_steps=n_explore,
-        exploration_object_period_frames=object_period_frames)
+        scene_seed=scene_seed, placement_seeds_from=placement_seed0 + 1, exploration_steps=n_explore,
+        exploration_object_period_frames=object_period_frames, planner_params=dict(planner_params or {}))
     results: List[Dict[str, object]] = []
     skipped = []
     with ProcessGraph(log_dir=Path(output_dir) / 'tmp' / 'arm_reach_logs') as graph:      # results/tmp: not kept
-        nodes = start_arm_graph(graph, SCENE_SEED, n_explore, object_period_frames)
+        nodes = start_arm_graph(graph, scene_seed, n_explore, object_period_frames, planner_params=planner_params)
         driver = ArmGraphDriver('arm_reach_driver', nodes)
         try:
             out['learn_s'] = round(driver.learn(max(60.0, deadline - time.monotonic() - 60)), 1)
             out['exploration_frames'] = len(driver.joints)
             out['exploration_placements'] = len({t.placement for t in driver.truth.values()})
-            seed = PLACEMENT_SEED0
+            seed = placement_seed0
             while len(results) < n_placements and time.monotonic() < deadline - 20:
                 seed += 1
                 r = driver.run_placement(scene, seed, min(120.0, deadline - time.monotonic()))
