@@ -188,8 +188,12 @@ class SensorManifoldModel:
                 'reentry_rms_after': self.virtual_.reentry_rms_after_}
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix='.' + path.name, suffix='.npz')
         os.close(fd)
-        np.savez(tmp, meta=np.array(json.dumps(meta)), **arrays)
-        os.replace(tmp, path)
+        try:
+            np.savez(tmp, meta=np.array(json.dumps(meta)), **arrays)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)        # no half-written temp files left behind
+            raise
 
     @classmethod
     def load(cls, path: os.PathLike) -> 'SensorManifoldModel':

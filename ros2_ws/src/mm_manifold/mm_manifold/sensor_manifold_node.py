@@ -199,11 +199,16 @@ class SensorManifold(Node):
                 model = SensorManifoldModel(self.dt, *self.grid_shape, jacobian_degree=self.jacobian_degree).fit(
                     R, U, C, grid=warm)
                 problem = refit_problem(live, model, R[live_fitted_on:], U[live_fitted_on:], C[live_fitted_on:])
-                if problem is None and self.model_path:
-                    model.save(self.model_path)
-                result.append((model, problem))
             except ValueError as exc:
-                result.append((None, str(exc)))
+                result.append((None, str(exc), None))
+                return
+            unsaved = None
+            if problem is None and self.model_path:
+                try:
+                    model.save(self.model_path)
+                except OSError as exc:        # a full disk or a bad path loses the file, not the model
+                    unsaved = str(exc)
+            result.append((model, problem, unsaved))
 
         self.fit_result = result
         self.fitting = threading.Thread(target=fit, name='manifold_fit', daemon=True)
@@ -214,7 +219,8 @@ class SensorManifold(Node):
         if self.fitting is None or self.fitting.is_alive():
             return
         self.fitting = None
-        m, problem = self.fit_result[0] if self.fit_result else (None, 'the fitting thread ended without a result')
+        m, problem, unsaved = (self.fit_result[0] if self.fit_result
+                               else (None, 'the fitting thread ended without a result', None))
         if m is None:
             self.get_logger().error(f'fit failed: {problem}; will retry with more samples')
             self.fitted_samples = len(self.readings) - self.learn_after // 2
@@ -222,6 +228,9 @@ class SensorManifold(Node):
         if problem is not None:
             self.get_logger().warn(f'refit on {m.n_samples_} samples not used, the live model is kept: {problem}')
             return
+        if unsaved:
+            self.get_logger().error(f'could not save the model to {self.model_path} ({unsaved}); it is used from '
+                                    'memory and lost on a restart')
         self.live_fitted_on = m.n_samples_
         self._install(m)
         self.get_logger().info(

@@ -300,3 +300,24 @@ def test_a_small_refit_never_replaces_a_good_loaded_model(model_file, tmp_path):
         assert rig.models[-1].samples == live.n_samples_
     finally:
         rig.ros.close()
+
+
+def test_a_model_that_cannot_be_saved_is_still_used(tmp_path):
+    """model_path pointing at a directory: unreadable at start (learning anew), unwritable after the fit; the fitted
+    model is used and published all the same, the failure logged, no temp file left."""
+    rig = Rig({'model_path': str(tmp_path), 'learn_after': 100})
+    try:
+        assert rig.node.model is None
+        log = explore(WheeledRobot(), 101, random_state=5, dt=DT)
+        for k, (reading, command) in enumerate(zip(log.readings, log.commands)):
+            rig.publish_step(k + 1, reading)
+            rig.wait_states(k + 1)
+            rig.command(command)
+            assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 1)
+        assert rig.ros.spin_until(lambda: rig.node.model is not None, timeout=60)
+        rig.subscribe_model()
+        assert rig.ros.spin_until(lambda: rig.models, timeout=10)
+        assert rig.models[-1].samples == 100
+        assert not list(tmp_path.parent.glob(f'.{tmp_path.name}*.npz'))     # the temp file was removed
+    finally:
+        rig.ros.close()
