@@ -33,7 +33,8 @@ PLACEMENT_SEED0 = 70_000          # held-out placements: seeds 70001, 70002, ...
 
 def run(output_dir: Path, quick: bool, placements: Optional[int] = None, exploration_steps: Optional[int] = None,
         object_period_frames: int = 10, budget_s: float = 840.0, scene_seed: int = SCENE_SEED,
-        placement_seed0: int = PLACEMENT_SEED0, planner_params: Optional[Dict] = None) -> dict:
+        placement_seed0: int = PLACEMENT_SEED0, planner_params: Optional[Dict] = None,
+        embedding_params: Optional[Dict] = None) -> dict:
     """The benchmark (module docstring); mm_bringup.tune_arm_reach calls it with seeds of its own."""
     from mm_sim.arm_model import ArmModel
     n_placements = placements or (4 if quick else 30)
@@ -44,11 +45,12 @@ def run(output_dir: Path, quick: bool, placements: Optional[int] = None, explora
     out: Dict[str, object] = dict(
         ran_through_graph='arm_sim + image_embedding + dp_planner as processes, lockstep; driver = this process',
         scene_seed=scene_seed, placement_seeds_from=placement_seed0 + 1, exploration_steps=n_explore,
-        exploration_object_period_frames=object_period_frames, planner_params=dict(planner_params or {}))
+        exploration_object_period_frames=object_period_frames, planner_params=dict(planner_params or {}),
+        embedding_params=dict(embedding_params or {}))
     results: List[Dict[str, object]] = []
     skipped = []
     with ProcessGraph(log_dir=Path(output_dir) / 'tmp' / 'arm_reach_logs') as graph:      # results/tmp: not kept
-        nodes = start_arm_graph(graph, scene_seed, n_explore, object_period_frames, planner_params=planner_params)
+        nodes = start_arm_graph(graph, scene_seed, n_explore, object_period_frames, embedding_params, planner_params)
         driver = ArmGraphDriver('arm_reach_driver', nodes)
         try:
             out['learn_s'] = round(driver.learn(max(60.0, deadline - time.monotonic() - 60)), 1)
