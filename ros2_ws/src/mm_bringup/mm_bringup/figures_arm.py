@@ -70,10 +70,11 @@ def fig11(out: Path) -> None:
 
 def fig12(out: Path, ev) -> None:
     learner, test = ev['_learner'], ev['_test']
-    emb, sphere, Y_test = ev['_lle_sphere_model']
-    Y, c = emb.embedding_, learner.train_contact_
+    emb, sphere, Y_test_all = ev['_lle_sphere_model']
+    Y, c = emb.embedding_[:, :3], learner.train_contact_      # the first three axes of a possibly 4-D embedding
+    Y_test = Y_test_all[:, :3]
     d_test, c_test = test['distance'], test['contact']
-    close_test = sphere.closeness(Y_test)
+    close_test = sphere.closeness(Y_test_all)
     rho = spearmanr(close_test, d_test)[0]
     fig = plt.figure(figsize=(17, 5.2))
     ax = fig.add_subplot(1, 3, 1, projection='3d')
@@ -81,10 +82,11 @@ def fig12(out: Path, ev) -> None:
     ax.scatter(*Y[c].T, s=8, c='tab:red', marker='x', alpha=0.6, label='contact (training)')
     u, v = np.mgrid[0:2 * np.pi:24j, 0:np.pi:12j]
     unit = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)], -1) * sphere.radius_
-    pts = unit + sphere.centre_
+    pts = unit + sphere.centre_[:3]              # the sphere's projection onto these axes
     ax.plot_wireframe(pts[..., 0], pts[..., 1], pts[..., 2], color='k', linewidth=0.3, alpha=0.5)
     r = ev['lle_sphere']
-    ax.set_title(f'LLE of {len(Y)} exploration frames (object re-placed every {ev["replace_every"]})\n'
+    ax.set_title(f'LLE ({emb.embedding_.shape[1]}-D, axes 1-3) of {len(Y)} exploration frames '
+                 f'(object re-placed every {ev["replace_every"]})\n'
                  f'paper\'s sphere: held-out TPR {r["tpr"]:.2f} / FPR {r["fpr"]:.2f}', fontsize=9)
     ax.legend(fontsize=7, loc='upper left')
     ax = fig.add_subplot(1, 3, 2, projection='3d')
@@ -163,7 +165,7 @@ def tables(out: Path, bench_json: Path) -> None:
             f"{b['eval_n_test'] - b['eval_test_contact']} without); training: {b['eval_n_train']} exploration "
             f"frames from {b['eval_train_placements']} placements ({b['eval_train_contact']} with contact). "
             f"Vector: {b['eval_representation']} keypoint positions, {b['eval_vector_width']} values; "
-            f"{b['eval_n_components']}-D embeddings, LLE method {b['eval_lle_method']}.", '',
+            f"{b['eval_n_components']}-D embeddings, LLE method {b['learner_params']['lle_method']}.", '',
             'n_neighbors, the radius / threshold and (best rows) the region model were chosen by 5-fold '
             'cross-validation on the training frames only; the same test frames score every row.', '']
     for m, title in keys:
