@@ -38,6 +38,10 @@ LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durabi
 SPACES = (ManifoldState.SPACE_NONE, ManifoldState.SPACE_SENSOR1, ManifoldState.SPACE_VIRTUAL_SENSOR1,
           ManifoldState.SPACE_SENSOR2)
 MAX_STAMP_AHEAD = 60.0       # [s] a state stamped further ahead of this node's clock is refused (a forged stamp)
+# [wall s] an answered step that comes again later than this lost its command (the simulator re-sends a step only after
+# its republish period without one, e.g. when it restarted): the command is sent again. Sooner, the re-sent step only
+# crossed the command on its way and is dropped (a second command would advance the simulator one step too far).
+RESEND_AFTER = 0.25
 
 
 def _ns(stamp) -> int:
@@ -86,6 +90,8 @@ class SwitchingControllerNode(Node):
         self.state_stamp: Optional[Time] = None
         self.newest_ns = -1          # newest state accepted
         self.last_answered = -1      # newest state answered with a command
+        self.last_command: Optional[Float64MultiArray] = None
+        self.answered_wall = 0.0     # monotonic time the last command was sent
         self.rejected = 0
 
         self.command_pub = self.create_publisher(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands',
@@ -203,8 +209,13 @@ class SwitchingControllerNode(Node):
 
     def _on_state(self, msg: ManifoldState) -> None:
         stamp = _ns(msg.header.stamp)
-        if stamp == self.last_answered:
-            return                   # a re-published step that was already answered
+        if stamp == self.last_answered:          # a step that was already answered, sent again
+            if self.last_command is not None and time.monotonic() - self.answered_wall > RESEND_AFTER:
+                self.get_logger().info(f'step {stamp * 1e-9:.3f} s came again: its command was lost, sending it '
+                                       'again', throttle_duration_sec=1.0)
+                self.answered_wall = time.monotonic()
+                self.command_pub.publish(self.last_command)
+            return
         problem = self._state_problem(msg)
         if problem:
             self._reject('manifold state', problem)
@@ -233,7 +244,9 @@ class SwitchingControllerNode(Node):
         if decision.command is not None:
             self.last_answered = _ns(decision.stamp)
             self.bumper_since_command = False
-            self.command_pub.publish(Float64MultiArray(data=[float(v) for v in decision.command]))
+            self.last_command = Float64MultiArray(data=[float(v) for v in decision.command])
+            self.answered_wall = time.monotonic()
+            self.command_pub.publish(self.last_command)
         msg = ControllerStatus()
         # Stamped with the state it answers (the sim clock on /clock may lag behind the state that just arrived).
         stamp = decision.stamp if decision.stamp is not None else self.state_stamp

@@ -116,6 +116,27 @@ def test_explores_one_command_per_state_then_learns():
         rig.ros.close()
 
 
+def test_a_step_sent_again_after_its_command_was_lost_gets_the_same_command():
+    """The simulator re-sends a step only when no command came for its republish period (e.g. it restarted and the
+    command went to its predecessor): the controller sends that step's command again. A re-send right after the answer
+    crossed the command and is dropped (a second command would advance the simulator one step too far)."""
+    rig = Rig({'exploration_steps': 10, 'random_seed': 1, 'bumper_wait': 0.0})
+    try:
+        rig.state(1)
+        assert rig.ros.spin_until(lambda: len(rig.commands) == 1)
+        rig.state(1)                                               # crossed the command: dropped
+        rig.ros.spin_for(0.1)
+        assert len(rig.commands) == 1
+        rig.ros.spin_for(0.3)
+        rig.state(1)                                               # the command was lost: sent again, unchanged
+        assert rig.ros.spin_until(lambda: len(rig.commands) == 2)
+        assert list(rig.commands[1].data) == list(rig.commands[0].data) and rig.node.explored == 1
+        rig.state(2)                                               # the loop goes on
+        assert rig.ros.spin_until(lambda: len(rig.commands) == 3) and rig.node.explored == 2
+    finally:
+        rig.ros.close()
+
+
 def test_a_model_that_has_not_seen_sensor2_sends_it_exploring_again(learned):
     """Some noisy explorations never see sensor 2 during an excursion: that model cannot map any goal, so the
     controller explores exploration_steps // 4 more steps (the manifold node refits after them) instead of waiting
