@@ -9,9 +9,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import List, Optional, Tuple
+from pathlib import Path
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
+import yaml
+from ament_index_python.packages import get_package_share_directory
 
 from mm_manifold.model_message import model_to_msg
 from mm_manifold.sensor_manifold import SENSOR2, SensorManifoldModel, StateTracker
@@ -19,10 +22,71 @@ from mm_msgs.msg import ControllerStatus
 from mm_planner.switching_controller import SPACE_SENSOR2
 from mm_planner.wall_agent import Goal, Observation, WallAgent
 from mm_planner.wall_model import WallModel
-from mm_sim.wheeled_model import WheeledRobot, wall_relative_state
+from mm_sim.wheeled_model import ProximitySensor, WheeledRobot, default_sensors, wall_relative_state
 
 PAPER_START = (0.0, 1.0, -math.pi / 2)          # facing the wall perpendicularly at 1 m
 PAPER_GOAL = (0.0, 0.2, 0.0)                    # close to the wall, parallel, only sensor 2 sees it
+
+
+LAYOUTS = ('paper', 'overlap')       # named sensor layouts: parameter files in mm_sim/layouts/
+
+
+def simulator_params_file() -> Path:
+    """The simulator's own parameter file (installed; a symlink into the source tree with a symlink install)."""
+    return Path(get_package_share_directory('mm_sim')) / 'config' / 'wheeled_sim.yaml'
+
+
+def layout_file(name: str) -> Path:
+    """mm_sim/layouts/<name>.yaml: `paper` (no pose where both sensor groups see the wall) or `overlap` (the
+    simulator's default). The layouts sit next to mm_sim's config directory in the source tree."""
+    if name not in LAYOUTS:
+        raise ValueError(f'unknown sensor layout {name!r}, expected one of {LAYOUTS}')
+    path = simulator_params_file().resolve().parent.parent / 'layouts' / f'{name}.yaml'
+    if not path.is_file():
+        raise FileNotFoundError(f'{path} not found (the layouts live in the source tree, ros2_ws/src/mm_sim/layouts)')
+    return path
+
+
+def simulator_parameters(params_files: Sequence[Path]) -> dict:
+    """wheeled_sim's ros__parameters as `--params-file A --params-file B` gives them (later files win per parameter)."""
+    merged: dict = {}
+
+    def merge(into: dict, new: dict) -> None:
+        for key, value in new.items():
+            if isinstance(value, dict):
+                merge(into.setdefault(key, {}), value)
+            else:
+                into[key] = value
+    for path in params_files:
+        content = yaml.safe_load(Path(path).read_text()) or {}
+        for node in ('wheeled_sim', '/wheeled_sim', '/**'):
+            merge(merged, (content.get(node) or {}).get('ros__parameters', {}))
+    return merged
+
+
+def robot_from_params(params_files: Sequence[Path], scale: float = 1.0, **robot_kwargs) -> Tuple[WheeledRobot, float]:
+    """(robot, dt) as wheeled_sim builds them from these parameter files; `scale` multiplies the wheel radius and
+    separation, the body radius and the sensor mounts (a larger robot of the same shape); `robot_kwargs` (noise,
+    dropout, random_state) go to WheeledRobot."""
+    p = simulator_parameters(params_files)
+    sensors = []
+    for d in default_sensors():
+        s = p.get('sensors', {}).get(d.name, {})
+        x, y, yaw = s.get('mount', [d.x, d.y, math.degrees(d.yaw)])
+        low, high = s.get('range', [d.min_range, d.max_range])
+        sensors.append(ProximitySensor(d.name, scale * x, scale * y, math.radians(yaw), low, high,
+                                       s.get('field_of_view', d.field_of_view),
+                                       math.radians(s.get('max_incidence_deg', math.degrees(d.max_incidence)))))
+    defaults = WheeledRobot()
+    robot = WheeledRobot(scale * p.get('wheel_radius', defaults.wheel_radius),
+                         scale * p.get('wheel_separation', defaults.wheel_separation),
+                         scale * p.get('body_radius', defaults.body_radius), sensors, **robot_kwargs)
+    return robot, float(p.get('dt', 0.05))
+
+
+def layout_robot(layout: str, scale: float = 1.0, **robot_kwargs) -> Tuple[WheeledRobot, float]:
+    """(robot, dt) of wheeled_sim.yaml with a named sensor layout on top."""
+    return robot_from_params([simulator_params_file(), layout_file(layout)], scale, **robot_kwargs)
 
 
 @dataclass
