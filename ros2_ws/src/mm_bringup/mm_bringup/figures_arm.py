@@ -133,7 +133,7 @@ def fig13(out: Path, ev) -> None:
         ax.set_title(f'({list(picks).index(k) + 1}) step {k}', fontsize=9)
         ax.axis('off')
     cells = np.array([grid.cell_of(q) for q in traj])
-    for ax, m, title in ((axes[-2], pred['collision'], f'predicted map (1 frame, before moving)'),
+    for ax, m, title in ((axes[-2], pred['collision'], 'predicted map (1 frame, before moving)'),
                          (axes[-1], truth, 'ground truth (any arm part)')):
         ax.imshow(m, cmap='Reds', origin='upper', vmin=0, vmax=1.5)
         ax.plot(cells[:, 1], cells[:, 0], 'b.-')

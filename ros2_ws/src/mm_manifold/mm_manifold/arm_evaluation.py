@@ -165,7 +165,8 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
     gap = np.min(np.linalg.norm(test['object'][:, None] - np.unique(train['object'], axis=0)[None], axis=2), 1)
     roles = np.bincount(learner.label_roles_, minlength=4)
     result: Dict[str, object] = dict(
-        n_train=n_train, n_test=n_test, replace_every=replace_every, touch=touch, scene_seed=scene_seed, train_seed=train_seed,
+        n_train=n_train, n_test=n_test, replace_every=replace_every, touch=touch, scene_seed=scene_seed,
+        train_seed=train_seed,
         test_seed=test_seed, train_placements=int(train['placement'].max() + 1),
         test_placements=int(test['placement'].max() + 1), train_contact=int(c.sum()), test_contact=int(c_test.sum()),
         train_contact_share=float(c.mean()), test_contact_share=float(c_test.mean()),

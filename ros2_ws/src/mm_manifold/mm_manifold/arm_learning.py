@@ -299,8 +299,8 @@ class ArmStateLearner:
             raw, joints, self.min_motion, self.self_r2, self.external_r2)
         P = raw.reshape(len(raw), -1, 2)
         seen = np.isfinite(P[:, :, 0])
-        self.label_mean_ = np.where(seen.any(0)[:, None], np.nansum(P, axis=0) /
-                                       np.maximum(seen.sum(0), 1)[:, None], np.nan)
+        self.label_mean_ = np.where(seen.any(0)[:, None],
+                                    np.nansum(P, axis=0) / np.maximum(seen.sum(0), 1)[:, None], np.nan)
         if self.representation == 'relative' and not np.any(self.label_roles_ == SELF):
             raise ValueError('no keypoint label follows the joint readings; cannot build the relative vector')
 

@@ -176,7 +176,8 @@ def plan_before_moving(learner, model, n_placements: int = PLACEMENTS, seed: int
         rows.append(row)
         log(f"[arm_task] placement {len(rows)}/{n_placements}: map cells wrong "
             f"{row['cells_any']['fn'] + row['cells_any']['fp']}/96, paper rewards "
-            f"{'ok' if row['paper']['success'] else 'FAIL'}, clearance {'ok' if row['clearance']['success'] else 'FAIL'}")
+            f"{'ok' if row['paper']['success'] else 'FAIL'}, "
+            f"clearance {'ok' if row['clearance']['success'] else 'FAIL'}")
     n = max(len(rows), 1)
     out: Dict[str, object] = dict(plan_placements=len(rows), plan_skipped_no_task=skipped,
                                   plan_new_frames_per_placement=max([r['new_frames'] for r in rows], default=0),
