@@ -28,7 +28,8 @@ def run_arm_demo(graph: ProcessGraph, log: Callable[[str], None] = print, timeou
                  object_period_frames: int = 10, embedding_params: Optional[Dict] = None) -> Dict:
     """Run the arm experiment in `graph` (module docstring). Summary keys: reached (every placement's goal),
     contact_count (frames after a goal whose motion touched the object with any arm part, ground truth),
-    hand_contact_count (of those, the hand: what the touch sensor felt), phase and detail (of the last placement),
+    hand_contact_placements (placements whose executed motion touched the object with the hand, what the touch
+    sensor feels), phase and detail (of the last placement),
     placements (per placement: outcome, detail, plan, steps, new_frames, contact, clearance), execution_steps,
     new_frames (most frames of a new placement seen before moving), min_hand_object_distance_px, min_link_clearance_px
     (along the executed motions), exploration_steps, exploration_contact_frames (touch readings while exploring),
@@ -80,7 +81,7 @@ def run_arm_demo(graph: ProcessGraph, log: Callable[[str], None] = print, timeou
         return dict(
             reached=all(r['reached'] for r in results), phase=last['outcome'], detail=last['detail'],
             contact_count=sum(r['contact_frames'] for r in results),
-            hand_contact_count=sum('hand' in r['contact_parts'] for r in results),
+            hand_contact_placements=sum('hand' in r['contact_parts'] for r in results),
             placements=results, execution_steps=sum(r['steps'] for r in results),
             new_frames=max(r['new_frames'] for r in results),
             min_hand_object_distance_px=_smallest(r['min_hand_object_distance_px'] for r in results),
