@@ -37,7 +37,7 @@ from mm_planner.arm_exploration import ArmExplorer
 from mm_planner.value_iteration import DPPlanner, JointGrid
 
 # Phase ids are those of mm_msgs/ControllerStatus (one home: the message); repeated here as plain ints because
-# this module has no ROS imports. tests check they agree.
+# this module has no ROS imports. test_arm_agent checks they agree.
 PHASE_EXPLORING, PHASE_LEARNING, PHASE_WAITING_FOR_GOAL = 1, 2, 3
 PHASE_PLANNING, PHASE_EXECUTING, PHASE_GOAL_REACHED, PHASE_FAILED = 7, 8, 9, 10
 PHASE_NAMES = {PHASE_EXPLORING: 'EXPLORING', PHASE_LEARNING: 'LEARNING', PHASE_WAITING_FOR_GOAL: 'WAITING_FOR_GOAL',
@@ -55,6 +55,7 @@ class ArmObservation:
 
 @dataclass
 class Transition:
+    """A phase change: the new phase, why, and the stamp of the goal it belongs to (None before any goal)."""
     phase: int
     detail: str
     goal_stamp: Optional[int]
