@@ -2,29 +2,39 @@
 topic it subscribes to, hostile requests on every service it offers and hostile values for every parameter, then a
 valid input; it must stay up, answer, and still process the valid input. Failures name node, input and variant.
 
-For a message (or service request) template, `message_variants` yields copies with
-one field made hostile at a time: NaN/inf/1e308 in floats, empty, one-too-short/long and huge sequences, extreme
-integers, empty/huge/path-like strings, stamps far in the future (2^31-1 s), at zero, or with an invalid nanosecond
-field. `NodeFuzzer` starts the node as a real process (mm_bringup.process_graph), discovers the topics it subscribes to
-and the services it offers from the ROS graph, sends every variant, then a valid input, and records every crash
-(restarting the node to go on), every malformed request left unanswered, every input set that was no longer processed,
-and every non-finite parameter value accepted.
+For a message (or service request) template, `message_variants` yields copies with one field made hostile at a
+time: NaN/inf/1e308 in floats, empty, one-too-short/long and huge sequences, extreme integers, empty/huge/path-like
+strings, stamps far in the future (2^31-1 s), at zero, negative or with an invalid nanosecond field (and, after the
+first valid frame, stamps going backwards). `NodeFuzzer` starts the node (mm_bringup.process_graph), discovers the
+topics it subscribes to and the services it offers from the ROS graph, sends every variant, then a valid input, and
+records every crash (restarting the node to go on), every request left unanswered, every valid input no longer
+processed, and every non-finite parameter value accepted.
 """
 from __future__ import annotations
 
 import copy
+import importlib
 import math
-import time
+import os
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
+import numpy as np
+import pytest
+from builtin_interfaces.msg import Time
+from mm_msgs.msg import CollisionMap, Contact, EmbeddingState, ManifoldState, SensorGoal, SensorManifoldModel
+from mm_msgs.srv import PlaceObject, ResetPose, SetJointGoal, SetSensorGoal
+from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import Parameter as ParameterMsg, ParameterType, ParameterValue
-from rcl_interfaces.srv import DescribeParameters, GetParameters, ListParameters, SetParameters
+from rcl_interfaces.srv import GetParameters, ListParameters, SetParameters
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-import importlib
+from sensor_msgs.msg import Image, JointState, Range
+from std_msgs.msg import Bool, Float64MultiArray, Header
 
 from mm_bringup.process_graph import NodeProcess, ProcessGraph
+from mm_common.rosbag import iter_messages
 from mm_common.testing import RosHarness
 
 FAR_FUTURE_SEC = 2**31 - 1
@@ -461,18 +471,6 @@ def report(name: str, failures: Sequence[Failure], sent: int) -> str:
 # ---------------------------------------------------------------------------------------------------------------------
 # The nodes: valid inputs of step k, and how their output shows that step was processed.
 # ---------------------------------------------------------------------------------------------------------------------
-import os
-import signal
-import subprocess
-
-import numpy as np
-import pytest
-from builtin_interfaces.msg import Time
-from mm_msgs.msg import CollisionMap, Contact, EmbeddingState, ManifoldState, SensorGoal, SensorManifoldModel
-from mm_msgs.srv import PlaceObject, ResetPose, SetJointGoal, SetSensorGoal
-from nav_msgs.msg import Odometry
-from sensor_msgs.msg import Image, JointState, Range
-from std_msgs.msg import Bool, Float64MultiArray, Header
 
 BASE_NS = 1000 * 1_000_000_000           # valid stamps start at 1000 s of sim time
 STEP_NS = 50_000_000
@@ -648,7 +646,6 @@ def _record(ros: RosHarness, client, graph: ProcessGraph, bag: Path, fuzz: bool)
 def test_recorder_survives_malformed_messages(tmp_path):
     """Hostile messages on many topics (and two types on one topic) are recorded or skipped; the valid messages are
     in a readable bag after SIGINT."""
-    from mm_common.rosbag import iter_messages
     ros = RosHarness()
     client = ros.node('fuzz_recorder_driver')
     graph = ProcessGraph(log_dir=tmp_path / 'logs')
@@ -673,7 +670,6 @@ def test_recorder_survives_malformed_messages(tmp_path):
 
 def _broken_copies(valid: Path, root: Path) -> Dict[str, Path]:
     """Copies of a valid bag, each damaged in one way."""
-    import shutil
     mcap = next(valid.glob('*.mcap'))
     out = {}
 
