@@ -19,11 +19,11 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
-_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)   # SIGHUP: the terminal closed
 
 
 def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = None) -> None:
-    """Spin one node until SIGINT/SIGTERM or external shutdown, then clean up; the process exits with status 0.
+    """Spin one node until SIGINT/SIGTERM/SIGHUP or external shutdown, then clean up; the process exits with status 0.
 
     rclpy's own signal handlers shut the context down inside the handler, which races with an executor that is
     building its wait set (`RCLError: failed to initialize wait set: the given context is not valid`, exit 1).

@@ -100,7 +100,7 @@ run_node(Busy, sys.argv)
 '''
 
 
-@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=['SIGINT', 'SIGTERM', 'SIGHUP'])
 def test_run_node_exits_cleanly_on_signals_mid_spin(sig, tmp_path):
     """Many signals at varying points of a busy spin: every run exits 0 without a traceback."""
     script = tmp_path / 'busy.py'
