@@ -130,6 +130,45 @@ def explore(robot: WheeledRobot, steps: int, start=PAPER_START, random_state: in
 
 
 @dataclass
+class Learned:
+    """What the exploration-and-learning loop ended with: the model (None when it never became ready), samples
+    explored in all (extra exploration included, as the nodes count them) and the agent's last status detail."""
+    model: Optional[SensorManifoldModel]
+    samples: int
+    detail: str
+
+
+def learn(robot: WheeledRobot, exploration_steps: int, dt: float, random_state: int, start=PAPER_START,
+          max_samples: Optional[int] = None) -> Learned:
+    """The graph's exploration and learning in process: the WallAgent explores until it asks for a model, the
+    learner fits on every sample so far and the model reaches the agent through its message; a model that is not
+    ready sends the agent exploring again (exploration_steps // 4 more) and the learner refits, as sensor_manifold
+    does, until the agent waits for a goal or `max_samples` (default 4 x exploration_steps) were explored."""
+    max_samples = max_samples or 4 * exploration_steps
+    agent = WallAgent(dt, exploration_steps=exploration_steps, random_state=random_state)
+    pose, bumped = tuple(start), False
+    R, U = [], []
+    model = None
+    while agent.phase != ControllerStatus.PHASE_WAITING_FOR_GOAL and len(R) < max_samples:
+        if agent.phase == ControllerStatus.PHASE_LEARNING:
+            continuous = np.ones(len(R), dtype=bool)
+            continuous[-1:] = False
+            model = SensorManifoldModel(dt).fit(np.array(R), np.array(U), continuous)
+            agent.step(Observation(model=agent_model(robot, model)))
+            continue
+        r = robot.read(pose)
+        u = agent.step(Observation(state=True, stamp=len(R), readings=r, bumped=bumped,
+                                   learner_samples=len(R) + 1)).command
+        if u is None:
+            continue
+        R.append(r)
+        U.append(u)
+        pose, bumped = robot.step(pose, u, dt)
+    ready = agent.phase == ControllerStatus.PHASE_WAITING_FOR_GOAL
+    return Learned(model if ready else None, len(R), agent.detail)
+
+
+@dataclass
 class Episode:
     poses: List[Tuple[float, float, float]] = field(default_factory=list)
     spaces: List[int] = field(default_factory=list)
@@ -137,6 +176,9 @@ class Episode:
     readings: List[np.ndarray] = field(default_factory=list)
     commands: List[np.ndarray] = field(default_factory=list)
     reached: bool = False
+    detail: str = ''                               # the agent's last status detail (why it ended)
+    longest_blind: Tuple[int, int] = (0, 0)        # longest blind stretch [steps] and the route's prediction for it
+    watchdog_returns: int = 0                      # times the blind watchdog sent the robot back to the wall
 
     def path_length(self) -> float:
         p = np.array(self.poses)[:, :2]
@@ -158,12 +200,13 @@ def sensor2_goal_reading(robot: WheeledRobot, goal_pose) -> np.ndarray:
 
 def run_episode(robot: WheeledRobot, model: SensorManifoldModel, start, goal_reading: np.ndarray,
                 tolerance: float = 0.01, max_steps: int = 1500, dt: float = 0.05,
-                max_wheel_speed: float = 6.0) -> Episode:
+                max_wheel_speed: float = 6.0, wall_model: Optional[WallModel] = None) -> Episode:
     """One reach of the WallAgent (the switching_controller node's behaviour) from `start` to the goal reading, with
-    the learner's StateTracker making the states as the sensor_manifold node does."""
+    the learner's StateTracker making the states as the sensor_manifold node does. `wall_model`: the controller's
+    model if not the one the learner's message gives (e.g. a deliberately wrong one)."""
     agent = WallAgent(dt, exploration_steps=0, max_wheel_speed=max_wheel_speed, tolerance=tolerance,
                       max_reach_steps=max_steps)
-    agent.step(Observation(model=agent_model(robot, model)))
+    agent.step(Observation(model=wall_model or agent_model(robot, model)))
     decision = agent.step(Observation(goal=Goal(np.asarray(goal_reading, dtype=float))))
     if not decision.goal_accepted:
         raise ValueError(f'goal rejected: {decision.goal_reason}')
@@ -188,6 +231,8 @@ def run_episode(robot: WheeledRobot, model: SensorManifoldModel, start, goal_rea
         ep.commands.append(u)
         pose, _ = robot.step(pose, u, dt)
         last = u
+    ep.detail = agent.detail
+    ep.longest_blind, ep.watchdog_returns = agent.controller.longest_blind, agent.controller.watchdog_trips
     return ep
 
 

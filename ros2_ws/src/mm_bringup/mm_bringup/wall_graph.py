@@ -9,6 +9,7 @@ Used by `make demo`, the wall_task benchmark and the integration tests.
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -27,6 +28,8 @@ from mm_bringup.process_graph import ProcessGraph
 LOOP_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 DONE = (ControllerStatus.PHASE_GOAL_REACHED, ControllerStatus.PHASE_FAILED)
+# mm_planner.wall_agent.WallAgent.blind_report, in the controller's final status detail
+BLIND_REPORT = re.compile(r"longest blind stretch (?P<steps>\d+) steps, [\d.]+ x the route's predicted (?P<predicted>\d+)")
 
 
 @dataclass
@@ -40,6 +43,13 @@ class GraphEpisode:
     phase: int = ControllerStatus.PHASE_IDLE
     detail: str = ''
     wall_seconds: float = 0.0
+
+    @property
+    def longest_blind(self) -> tuple:
+        """(steps, the route's predicted steps) of the longest blind stretch, as the controller reports it in its
+        final status detail ((0, 0) when it did not say)."""
+        found = BLIND_REPORT.search(self.detail)
+        return (int(found['steps']), int(found['predicted'])) if found else (0, 0)
 
     @property
     def reached(self) -> bool:
@@ -78,14 +88,15 @@ class WallGraph:
     def __init__(self, work_dir: Path, exploration_steps: int = 10000, noise_range_fraction: float = 0.0,
                  dropout: float = 0.0, model_path=None, seed: int = 0,
                  graph: Optional[ProcessGraph] = None, dt: float = 0.05, recorder: Optional[str] = None,
-                 recorded_topics: Sequence[str] = ()):
+                 recorded_topics: Sequence[str] = (), sim_params_files: Sequence[Path] = ()):
         """`recorder`: name of a recorder node already running in `graph`, and `recorded_topics` the topics it must
         have subscribed to before the loop may start. The simulator starts first (it re-publishes its first step until
         a command arrives), then the controller (it only answers states), and the manifold node last, which closes
         the loop; each waits until the recorder subscribes to the topics of the nodes before it, so the bag holds the
         loop from its first step. `model_path`: where the learner keeps its model (default <work_dir>/wall_model.npz;
         '' = not persisted, as in the shipped sensor_manifold.yaml: the controller gets the model as a message
-        either way, kept here as `model_msg`)."""
+        either way, kept here as `model_msg`). `sim_params_files`: parameter files for wheeled_sim (e.g. wheeled_sim.yaml
+        and a sensor layout of mm_sim/layouts), loaded in order before the parameters set here."""
         self.work_dir = Path(work_dir)
         self.work_dir.mkdir(parents=True, exist_ok=True)
         self.dt = dt
@@ -124,8 +135,10 @@ class WallGraph:
             ('mm_manifold', 'sensor_manifold', {**sim_time, 'dt': dt, 'learn_after': exploration_steps,
                                                 'model_path': learner_path}, []),
         ]
+        sim_files = [a for f in sim_params_files for a in ('--params-file', str(f))]
         for package, executable, parameters, published in steps:
-            self.nodes.append(self.graph.start(package, executable, parameters))
+            extra = ['--ros-args', *sim_files] if executable == 'wheeled_sim' and sim_files else []
+            self.nodes.append(self.graph.start(package, executable, parameters, extra_args=extra))
             # One node at a time, each seen on the graph before the next starts (simultaneous starts occasionally
             # left two participants without matching endpoints, and the loop never started).
             self.spin_until(lambda: executable in node.get_node_names(), 60.0, f'{executable} to appear')

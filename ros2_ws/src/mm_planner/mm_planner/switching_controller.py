@@ -9,9 +9,18 @@ one-step Jacobian control stalls at the nonholonomic singularity near "parallel 
 distance-like reading there), so each step evaluates a set of constant commands over a short horizon with the learned
 field and keeps the one that brings the state closest to the goal (plus the damped least-squares Jacobian step as one
 candidate), with a small cost on wheel travel so rotating in place is preferred where it does the job.
+
+Never wander blind: each blind stretch (no sensor group in range) gets a length the route predicts, in steps: the
+controller's own plan rolled out in the learned virtual field from where the wall was lost to the route's goal
+coordinates. A stretch that runs past `blind_factor` times that plus `blind_margin_steps` means the virtual space is
+wrong there: the robot replays the commands it drove blind backwards (it knows its own commands; a differential drive
+retraces its path exactly under reversed commands), back to where it last saw the wall, and then takes the next
+practised route, or fails with the reason once `max_retries` routes were tried. Durations are in steps and distances
+in readings or grid units: nothing here knows the robot's size.
 """
 from __future__ import annotations
 
+import math
 from itertools import product
 from typing import Optional
 
@@ -21,6 +30,17 @@ from mm_msgs.msg import ManifoldState
 # The active spaces are the state message's constants (their one home).
 SPACE_NONE, SPACE_SENSOR1 = ManifoldState.SPACE_NONE, ManifoldState.SPACE_SENSOR1
 SPACE_VIRTUAL, SPACE_SENSOR2 = ManifoldState.SPACE_VIRTUAL_SENSOR1, ManifoldState.SPACE_SENSOR2
+
+
+def blind(readings) -> bool:
+    """Whether no sensor group sees the wall, from the raw readings (sensor 1's three, then sensor 2's two): a group
+    sees it when none of its readings is out of range (+-inf) and at least one has a value; a lost reading (NaN)
+    is not evidence of being out of range."""
+    r = np.asarray(readings, dtype=float)
+
+    def sees(group):
+        return not np.any(np.isinf(group)) and bool(np.any(np.isfinite(group)))
+    return not (sees(r[:3]) or sees(r[3:5]))
 
 
 class SwitchingController:
@@ -33,19 +53,25 @@ class SwitchingController:
     readings need more of them), damping of the least-squares step, waypoint_tolerance [grid units], turn_speed /
     drive_speed [rad/s] of the sensor-2 manoeuvres, stall_steps (steps without progress toward the target before
     aiming at the next fallback), max_retries (times the route is restarted from the practised exit when every
-    target was reached blind)."""
+    target was reached blind, or after the blind watchdog brought the robot back), blind_factor and
+    blind_margin_steps (the watchdog: a blind stretch may last blind_factor x its predicted length + the margin;
+    set from the stall window and a 50 % allowance for the field's error, not tuned), blind_prediction_cap [steps]
+    (longest rollout of the prediction)."""
 
     def __init__(self, dt: float, max_wheel_speed: float = 6.0, horizon: int = 12,
                  speed_levels=(1.0, 0.4, 0.12, 0.0), travel_weight: float = 1e-3, tolerance: float = 0.01,
                  settle_steps: int = 4, damping: float = 1e-2, waypoint_tolerance: float = 0.3,
                  turn_speed: float = 1.5, drive_speed: float = 4.0, stall_steps: int = 20, max_retries: int = 3,
-                 max_settle_steps: int = 30, manoeuvre_travel_weight: float = 1e-2):
+                 max_settle_steps: int = 30, manoeuvre_travel_weight: float = 1e-2, blind_factor: float = 1.5,
+                 blind_margin_steps: int = 20, blind_prediction_cap: int = 100):
         if dt <= 0 or max_wheel_speed <= 0 or tolerance <= 0 or horizon < 1:
             raise ValueError('dt, max_wheel_speed, tolerance and horizon must be positive')
         if travel_weight < 0 or manoeuvre_travel_weight < 0:
             raise ValueError('travel weights must be >= 0')
         if not 2 <= settle_steps <= max_settle_steps:
             raise ValueError('need 2 <= settle_steps <= max_settle_steps')
+        if blind_factor < 1 or blind_margin_steps < 0 or blind_prediction_cap < 1:
+            raise ValueError('need blind_factor >= 1, blind_margin_steps >= 0 and blind_prediction_cap >= 1')
         self.dt = dt
         self.max_wheel_speed = max_wheel_speed
         self.horizon = horizon
@@ -58,6 +84,9 @@ class SwitchingController:
         self.waypoint_tolerance = waypoint_tolerance
         self.stall_steps = stall_steps
         self.max_retries = max_retries
+        self.blind_factor = blind_factor
+        self.blind_margin_steps = blind_margin_steps
+        self.blind_prediction_cap = blind_prediction_cap
         self._plan: Optional[np.ndarray] = None
         levels = sorted({s * max_wheel_speed * sign for s in speed_levels for sign in (-1, 1)})
         self.candidates = np.array(list(product(levels, levels)), dtype=float)
@@ -117,6 +146,15 @@ class SwitchingController:
         self.settled, self._settle_readings = 0, []
         self._plan = None
         self._s2_best, self._s2_stalled, self._chosen, self._avoid = np.inf, 0, set(), set()
+        # Blind watchdog: the current stretch, its prediction and limit, the commands driven in it (to retrace), the
+        # longest stretch of the episode as (steps, predicted steps), and why the task cannot go on (None: it can).
+        self.blind_steps, self.predicted_blind, self.blind_limit = 0, 0, 0
+        self._blind_commands: list = []
+        self._last_seen_command: Optional[np.ndarray] = None
+        self.returning = False
+        self.longest_blind = (0, 0)
+        self.watchdog_trips = 0
+        self.failure: Optional[str] = None
 
     def set_goal_from_routes(self, virtual_space, sensor2_goal: np.ndarray,
                              sensor2_noise: Optional[np.ndarray] = None) -> None:
@@ -221,13 +259,120 @@ class SwitchingController:
     def command(self, space: int, coordinates: Optional[np.ndarray], sensor2: Optional[np.ndarray],
                 virtual_field, sensor2_field, sensor1_jacobian: Optional[np.ndarray] = None,
                 bounds: Optional[np.ndarray] = None, sensor2_box: Optional[np.ndarray] = None,
-                sensor2_measured: bool = True):
+                sensor2_measured: bool = True, blind: Optional[bool] = None):
         """(wheel command, reached, error in the active space) for the current state. `sensor1_jacobian` is the local
         Jacobian of the grid coordinates at the current reading (used while sensor 1 is in range);
         `sensor2_box` (2, 2) the range of sensor-2 readings seen during exploration; `sensor2_measured` False when
-        the sensor-2 state is carried over a lost or out-of-range reading (it then never ends the task)."""
+        the sensor-2 state is carried over a lost or out-of-range reading (it then never ends the task); `blind`
+        whether no sensor group sees the wall (default: the active space is neither sensor's). When the task cannot
+        go on, `failure` says why and the command is a stop."""
         if self.goal_sensor2 is None:
             raise ValueError('no goal set')
+        if blind is None:
+            blind = space not in (SPACE_SENSOR1, SPACE_SENSOR2)
+        if self.failure is not None:
+            return np.zeros(2), False, float('nan')
+        if not blind:
+            self._end_blind_stretch(space)
+            if self.failure is not None:
+                return np.zeros(2), False, float('nan')
+        else:
+            if self.blind_steps == 0:
+                self._start_blind_stretch(coordinates, virtual_field, bounds)
+            self.blind_steps += 1
+            if self.blind_steps > self.longest_blind[0]:
+                self.longest_blind = (self.blind_steps, self.predicted_blind)
+            if not self.returning and self.blind_steps > self.blind_limit:
+                self.returning = True
+                self.watchdog_trips += 1
+            if self.returning:
+                return self._retrace()
+        u, reached, error = self._command(space, coordinates, sensor2, virtual_field, sensor2_field, sensor1_jacobian,
+                                          bounds, sensor2_box, sensor2_measured)
+        if blind:
+            self._remember_blind(u)
+        else:
+            self._last_seen_command = np.asarray(u, dtype=float).copy()
+        return u, reached, error
+
+    # --- blind watchdog -----------------------------------------------------------------------------------------
+    def _start_blind_stretch(self, coordinates: Optional[np.ndarray], virtual_field, bounds) -> None:
+        """The wall was just lost: predict the stretch (the plan's rollout to the route's goal) and set its limit."""
+        # The command that took the robot out of sight is retraced too: undone, it puts the robot back where a
+        # sensor last saw the wall.
+        self._blind_commands = [] if self._last_seen_command is None else [[self._last_seen_command, self.dt]]
+        self.predicted_blind = (self.blind_prediction_cap if coordinates is None
+                                else self.predict_blind_steps(virtual_field, np.asarray(coordinates, dtype=float),
+                                                              bounds))
+        self.blind_limit = int(math.ceil(self.blind_factor * self.predicted_blind)) + self.blind_margin_steps
+
+    def predict_blind_steps(self, virtual_field, coordinates: np.ndarray, bounds: Optional[np.ndarray]) -> int:
+        """Steps the virtual-space plan needs from `coordinates` through the route's remaining exit to its goal
+        coordinates, rolled out in the learned field (at most blind_prediction_cap)."""
+        y = coordinates.copy()
+        targets = [t for t in (self.waypoint, self.goal_coordinates) if t is not None]
+        for n in range(self.blind_prediction_cap):
+            while targets and np.linalg.norm(targets[0] - y) < self.waypoint_tolerance:
+                targets.pop(0)
+            if not targets:
+                return max(n, 1)
+            u = self._best_constant_command(virtual_field, y, targets[0], 1.0, bounds)
+            y = y + virtual_field.rates(y[None], u[None])[0] * self.dt
+            if bounds is not None:
+                y = np.clip(y, bounds[0], bounds[1])
+        return self.blind_prediction_cap
+
+    def _remember_blind(self, u: np.ndarray) -> None:
+        """Keep the blind commands as (command, seconds) runs, equal consecutive commands merged."""
+        u = np.asarray(u, dtype=float)
+        if self._blind_commands and np.array_equal(self._blind_commands[-1][0], u):
+            self._blind_commands[-1][1] += self.dt
+        else:
+            self._blind_commands.append([u.copy(), self.dt])
+
+    def _retrace(self):
+        """Next command back along the blind path: the last run reversed, sped up to max_wheel_speed (the same
+        arc in less time). Nothing left to retrace and still blind: the wall cannot be found again."""
+        while self._blind_commands and not np.any(self._blind_commands[-1][0]):
+            self._blind_commands.pop()
+        if not self._blind_commands:
+            self.failure = (f'lost: blind for {self.blind_steps} steps and the retraced path did not find the wall '
+                            'again')
+            return np.zeros(2), False, float('nan')
+        run = self._blind_commands[-1]
+        u, seconds = run
+        speedup = self.max_wheel_speed / float(np.max(np.abs(u)))
+        covered = min(seconds, speedup * self.dt)
+        run[1] -= covered
+        if run[1] <= 1e-12:
+            self._blind_commands.pop()
+        return -u * (covered / self.dt), False, float('nan')
+
+    def _end_blind_stretch(self, space: int) -> None:
+        """A sensor sees the wall again. After a retrace back to sensor 1, take the next practised route (or fail:
+        every route was tried)."""
+        returned, self.returning = self.returning, False
+        self.blind_steps, self._blind_commands = 0, []
+        if not returned or space == SPACE_SENSOR2:       # sensor 2 in sight: carry on toward the goal
+            return
+        if self.retries >= self.max_retries or self._routes[0][0] is None:
+            self.failure = (f'blind longer than predicted on {self.retries + 1} routes (last stretch limit '
+                            f'{self.blind_limit} steps, predicted {self.predicted_blind}); back at the wall')
+            return
+        self._restart_route()
+
+    def _restart_route(self) -> None:
+        """Start again from the next practised route's exit (sensor 1 re-localises on re-entry)."""
+        self.retries += 1
+        self.waypoint, self.goal_coordinates = self._routes[self.retries % len(self._routes)]
+        self.fallbacks = list(self._fallbacks)
+        self.best_error, self.stalled_steps = np.inf, 0
+        if self.fallbacks and self._refuted(self.goal_coordinates):
+            self._next_target()
+
+    def _command(self, space: int, coordinates: Optional[np.ndarray], sensor2: Optional[np.ndarray],
+                 virtual_field, sensor2_field, sensor1_jacobian: Optional[np.ndarray],
+                 bounds: Optional[np.ndarray], sensor2_box: Optional[np.ndarray], sensor2_measured: bool):
         if space == SPACE_SENSOR2:
             error = np.abs(sensor2 - self.goal_sensor2)
             if self.settled or np.all(error < self.tolerance):
@@ -285,11 +430,6 @@ class SwitchingController:
               and self.retries < self.max_retries and self._routes[0][0] is not None):
             # Every target reached blind and still no sensor 2: the virtual estimate has drifted too far. Go back
             # to a practised exit (sensor 1 re-localises on re-entry): the next alternative route, else this one.
-            self.retries += 1
-            self.waypoint, self.goal_coordinates = self._routes[self.retries % len(self._routes)]
-            self.fallbacks = list(self._fallbacks)
-            self.best_error, self.stalled_steps = np.inf, 0
-            if self.fallbacks and self._refuted(self.goal_coordinates):
-                self._next_target()
+            self._restart_route()
         u = self._best_constant_command(virtual_field, coordinates, self.target, 1.0, bounds)
         return u, False, float(np.linalg.norm(self.target - coordinates))

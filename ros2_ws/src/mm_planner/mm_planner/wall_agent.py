@@ -21,7 +21,7 @@ import numpy as np
 from mm_msgs.msg import ControllerStatus, ManifoldState
 
 from mm_planner.exploration import RandomExplorer
-from mm_planner.switching_controller import SwitchingController
+from mm_planner.switching_controller import SwitchingController, blind
 from mm_planner.wall_model import WallModel
 
 PHASE_NAMES = {getattr(ControllerStatus, n): n[len('PHASE_'):] for n in dir(ControllerStatus) if n.startswith('PHASE_')}
@@ -226,14 +226,25 @@ class WallAgent:
         J1 = m.sensor1_jacobian(coords) if space == ManifoldState.SPACE_SENSOR1 and coords is not None else None
         measured = bool(np.all(np.isfinite(np.asarray(state.readings, dtype=float)[3:5])))
         u, done, error = c.command(space, coords, s2, m.virtual_field, m.sensor2_field, J1, m.virtual_bounds,
-                                   m.sensor2_box, sensor2_measured=measured)
+                                   m.sensor2_box, sensor2_measured=measured, blind=blind(state.readings))
         target = c.goal_sensor2 if space == ManifoldState.SPACE_SENSOR2 else (c.target if c.target is not None else ())
         target = tuple(float(v) for v in target)
         if done:
-            self._set_phase(ControllerStatus.PHASE_GOAL_REACHED, f'sensor-2 error {error:.4f} m')
+            self._set_phase(ControllerStatus.PHASE_GOAL_REACHED, f'sensor-2 error {error:.4f} m; {self.blind_report()}')
+            return None, error, target
+        if c.failure is not None:
+            self._set_phase(ControllerStatus.PHASE_FAILED, f'{c.failure}; {self.blind_report()}')
             return None, error, target
         self.reach_steps += 1
         if self.reach_steps > self.max_reach_steps:
-            self._set_phase(ControllerStatus.PHASE_FAILED, f'not reached within {self.max_reach_steps} steps')
+            self._set_phase(ControllerStatus.PHASE_FAILED, f'not reached within {self.max_reach_steps} steps; '
+                                                           f'{self.blind_report()}')
             return None, error, target
         return u, error, target
+
+    def blind_report(self) -> str:
+        """The episode's longest blind stretch for the status detail (mm_bringup.wall_graph parses it)."""
+        steps, predicted = self.controller.longest_blind
+        ratio = steps / predicted if predicted else 0.0
+        return (f'longest blind stretch {steps} steps, {ratio:.2f} x the route\'s predicted {predicted}, '
+                f'{self.controller.watchdog_trips} watchdog returns')

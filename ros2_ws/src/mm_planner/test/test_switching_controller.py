@@ -5,13 +5,14 @@ import math
 import numpy as np
 import pytest
 
-from mm_bringup.wall_experiment import (PAPER_START, explore, oracle_path_length, random_task, run_episode,
-                                        sensor2_goal_reading, success)
+from mm_bringup.wall_experiment import (PAPER_START, explore, layout_robot, model_message, oracle_path_length,
+                                        random_task, run_episode, sensor2_goal_reading, success)
 from mm_manifold.jacobian import PolynomialJacobianField
 from mm_manifold.sensor_manifold import SensorManifoldModel, find_excursions, group_in_range
 from mm_planner.exploration import SENSOR1, SENSOR2, RandomExplorer
-from mm_planner.switching_controller import SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SwitchingController
+from mm_planner.switching_controller import SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SwitchingController, blind
 from mm_planner.wall_agent import WallAgent
+from mm_planner.wall_model import WallModel
 from mm_sim.wheeled_model import WheeledRobot
 
 DT = 0.05
@@ -282,3 +283,74 @@ def test_random_tasks_mostly_succeed(robot, model):
     assert np.mean(results) >= 0.8, f'{sum(results)}/20 tasks reached'
     assert np.median(ratios) < 1.5                                 # measured ~1.2
 
+
+
+# --- never wander blind -----------------------------------------------------------------------------------------
+def test_blind_reads_lost_readings_as_unknown_not_out_of_range():
+    assert blind([math.inf] * 5)
+    assert blind([0.3, math.inf, 0.3, math.inf, 0.1])               # neither group fully in range
+    assert not blind(FAR)
+    assert not blind([0.3, math.nan, 0.3, math.inf, math.inf])      # a lost reading is not an out-of-range one
+    assert not blind([math.inf, math.inf, math.inf, 0.1, math.nan])
+    assert blind([math.nan] * 5)                                     # nothing at all seen
+
+
+def test_retracing_the_blind_commands_puts_the_robot_back_exactly():
+    """The watchdog's way back: the blind commands reversed (sped up to the wheel limit) retrace the same arcs."""
+    robot = WheeledRobot()
+    field, _ = linear_field()
+    c = SwitchingController(DT, max_wheel_speed=6.0)
+    c.set_goal(np.array([0.17, 0.17]), np.array([3.0, 3.0]))
+    rng = np.random.default_rng(1)
+    start = pose = (0.0, 0.8, -1.2)
+    c._last_seen_command = np.array([2.0, 3.0])
+    c._start_blind_stretch(None, field, None)
+    pose, _ = robot.step(pose, c._last_seen_command, DT)
+    for u in [rng.choice([-6.0, -2.4, 0.72, 0.0, 6.0], 2) for _ in range(40)] + [np.array([0.72, 0.72])] * 10:
+        c._remember_blind(u)
+        pose, _ = robot.step(pose, u, DT)
+    back = 0
+    while c._blind_commands:
+        u, _, _ = c._retrace()
+        assert np.max(np.abs(u)) <= 6.0 + 1e-9
+        pose, _ = robot.step(pose, u, DT)
+        back += 1
+    assert np.allclose(pose, start, atol=1e-9)
+    assert back < 51                       # slow runs go back at full speed: fewer steps than out
+
+
+@pytest.fixture(scope='module')
+def paper_robot_and_model():
+    """The `paper` layout (no pose where both groups see the wall: every route crosses a blind stretch), a short
+    exploration on a tuning seed."""
+    robot, dt = layout_robot('paper')
+    log = explore(robot, 4000, random_state=101, dt=dt)
+    return robot, SensorManifoldModel(dt).fit(log.readings, log.commands, log.continuous)
+
+
+def test_the_watchdog_brings_the_robot_back_when_the_route_is_wrong(paper_robot_and_model):
+    """A controller whose routes lead nowhere (the overlap's virtual coordinates mirrored inside the learned space,
+    as a wrong virtual space would put them): the robot must not drive blind until the step limit. The blind stretch
+    runs past its limit, the robot retraces its commands back into sensor-1 range, tries the next routes and then
+    fails with the reason; no blind stretch is longer than the way out and back."""
+    robot, model = paper_robot_and_model
+    msg = model_message(robot, model)
+    wrong = WallModel.from_msg(msg)
+    low, high = wrong.virtual_bounds
+    wrong.overlap_coordinates = low + high - wrong.overlap_coordinates         # mirrored inside the learned space
+    goal_reading = sensor2_goal_reading(robot, (0.0, 0.12, 0.0))
+    episode = run_episode(robot, model, PAPER_START, goal_reading, tolerance=0.005, dt=DT, wall_model=wrong)
+    assert not episode.reached
+    assert 'blind longer than predicted' in episode.detail, episode.detail
+    assert episode.watchdog_returns >= 1
+    spaces = np.array(episode.spaces)
+    blind_steps = np.array([blind(r) for r in episode.readings])
+    first_return = int(np.argmax(blind_steps))
+    assert np.any(spaces[first_return:] == SPACE_SENSOR1) and spaces[-1] == SPACE_SENSOR1    # back at the wall
+    c = SwitchingController(DT)
+    steps, predicted = episode.longest_blind
+    assert steps <= 2 * (math.ceil(c.blind_factor * predicted) + c.blind_margin_steps + 1)     # out and back
+    assert len(episode.poses) < 1500                     # failed long before the step limit
+    # The longest stretch counted by the agent is the one the readings show.
+    runs = np.diff(np.flatnonzero(np.diff(np.r_[0, blind_steps.astype(int), 0])))[::2]
+    assert max(runs) == episode.longest_blind[0]

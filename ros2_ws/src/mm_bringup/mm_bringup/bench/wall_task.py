@@ -1,35 +1,55 @@
-"""Wall benchmark (results/wall_task.json): paper Section 2 measured through the ROS graph.
+"""Wall benchmark (results/wall_task.json): paper Section 2 on the `paper` sensor layout, where no pose lets both
+sensor groups see the wall, so every task crosses a blind stretch as in the paper (mm_sim/layouts/paper.yaml; the
+simulator's default layout, `overlap`, is the easier problem and is measured in the matrix only).
 
-Each condition starts its own graph (wheeled_sim in lockstep + sensor_manifold + switching_controller as processes,
-mm_bringup.wall_graph), lets it explore and learn from scratch, then runs randomised reaching tasks with fixed seeds:
-a start where sensor 1 sees the wall, a goal pose close to the wall where only sensor 2 does, shown to the robot as
-its sensor-2 reading. Scoring uses ground truth (evaluation only):
+Headline, through the ROS graph (wheeled_sim in lockstep + sensor_manifold + switching_controller as processes,
+mm_bringup.wall_graph): the default robot on `paper`, exploration budgets 3 000 and 10 000 steps, one exploration seed
+each, 40 random tasks plus the paper's task. Matrix, in process (mm_bringup.wall_experiment drives the same WallAgent
+class as the switching_controller node, and the model reaches it through the same message; a node test checks both
+command alike): layouts {paper, overlap} x robots {default, 1.5x scaled, dt 0.1} x exploration seeds x budgets
+{3 000, 10 000}, and the same on `paper` with 1 % noise and 5 % dropout.
+
+Each task: a start where sensor 1 sees the wall, a goal pose close to the wall where only sensor 2 does, shown to the
+robot as its sensor-2 reading; tolerance 10 mm. Scoring uses ground truth (evaluation only):
 - success: the controller reports GOAL_REACHED and the noise-free sensor-2 reading at the final pose is within the
-  tolerance of the goal reading (so a noisy estimate that "arrived" early does not count);
+  tolerance of the goal reading;
 - final error: max |noise-free sensor-2 reading - goal reading| at the final pose [m] (inf when sensor 2 sees nothing);
-- path ratio: travelled path over the oracle's (a controller that knows the geometry: turn in place, drive straight
-  to the goal distance, turn in place; only the distance to the wall matters because readings do not depend on x);
-- blind fraction: share of the path length travelled while no sensor group could see the wall (noise-free sensor
-  model at the ground-truth poses).
-The noisy condition adds Gaussian noise with a std of 1 % of each sensor's max range and 5 % dropped readings, to
-exploration and tasks alike (the robot learns from noisy data too).
+- path ratio: travelled path over the oracle's (turn in place, drive straight to the goal distance, turn in place);
+- longest blind stretch: the most consecutive steps with no sensor group in range, as the controller counts them
+  (mm_planner.switching_controller.blind), and its ratio to the length the chosen route predicted;
+- samples: exploration samples in all, the extra exploration of a model that was not ready included.
+Seeds: exploration seeds from 1000 and task seeds from 5000, disjoint from the tuning seeds (100-119,
+mm_bringup.tune_wall) and from everything the code was developed on.
 """
 from __future__ import annotations
 
+import argparse
+import json
 import math
+import os
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import List, Optional
 
 import numpy as np
 
-from mm_bringup.wall_experiment import (PAPER_START, oracle_path_length, random_task, sensor2_goal_reading)
-from mm_bringup.wall_graph import WallGraph
+from mm_bringup.wall_experiment import (PAPER_START, layout_file, layout_robot, learn, oracle_path_length,
+                                        random_task, run_episode, sensor2_goal_reading, simulator_params_file)
 from mm_sim.wheeled_model import SENSOR2, WheeledRobot
 
 NAME = 'wall_task'
 PAPER_GOAL_POSE = (0.0, 0.25, 0.0)
 PAPER_TOLERANCE = 0.005
+TOLERANCE = 0.01
+NOISE = {'std_fraction_of_max_range': 0.01, 'dropout': 0.05}
+BUDGETS = (3000, 10000)
+EXPLORATION_SEEDS = (1000, 1001, 1002, 1003, 1004)
+TASK_SEED_BASE = 5000          # the task seed of exploration seed s is TASK_SEED_BASE + (s - 1000)
+ROBOTS = {'default': {'scale': 1.0, 'dt': None}, 'scaled_1.5x': {'scale': 1.5, 'dt': None},
+          'dt_0.1': {'scale': 1.0, 'dt': 0.1}}
+HEADLINE_SEEDS = {3000: 1000, 10000: 1001}
 
 
 def blind_fraction(robot: WheeledRobot, poses) -> float:
@@ -47,15 +67,129 @@ def blind_fraction(robot: WheeledRobot, poses) -> float:
 def score(robot: WheeledRobot, episode, start, goal_pose, goal_reading, tolerance: float) -> dict:
     final = robot.read(episode.poses[-1], noisy=False)[list(SENSOR2)]
     error = float(np.max(np.abs(final - goal_reading))) if np.all(np.isfinite(final)) else math.inf
+    steps, predicted = episode.longest_blind
     return {'reached': episode.reached, 'success': bool(episode.reached and error < tolerance),
             'final_error': error, 'path_ratio': episode.path_length() / oracle_path_length(start, goal_pose),
             'blind_fraction': blind_fraction(robot, episode.poses), 'steps': len(episode.poses) - 1,
-            'wall_seconds': episode.wall_seconds, 'final_heading': float(episode.poses[-1][2]),
-            'detail': episode.detail}
+            'longest_blind_steps': steps, 'longest_blind_ratio': steps / predicted if predicted else None,
+            'final_heading': float(episode.poses[-1][2]), 'detail': episode.detail}
 
 
-def run_task(graph: WallGraph, robot: WheeledRobot, start, goal_pose, tolerance: float,
-             timeout: float = 120.0) -> dict:
+def summarise(episodes: List[dict]) -> dict:
+    ok = [e for e in episodes if e['success']]
+    blind = [e['longest_blind_steps'] for e in episodes]
+    ratios = [e['longest_blind_ratio'] for e in episodes if e['longest_blind_ratio'] is not None]
+    return {
+        'tasks': len(episodes),
+        'success_rate': len(ok) / len(episodes) if episodes else None,
+        'median_final_error': float(np.median([e['final_error'] for e in episodes])) if episodes else None,
+        'median_path_ratio': float(np.median([e['path_ratio'] for e in ok])) if ok else None,
+        'longest_blind_steps_median': float(np.median(blind)) if blind else None,
+        'longest_blind_steps_max': int(max(blind)) if blind else None,
+        'longest_blind_ratio_median': float(np.median(ratios)) if ratios else None,
+        'longest_blind_ratio_max': float(max(ratios)) if ratios else None,
+        'share_longest_blind_over_2x_predicted': float(np.mean([r > 2 for r in ratios])) if ratios else None,
+        'failures': [{'task': i, 'detail': e['detail'], 'final_error': e['final_error']}
+                     for i, e in enumerate(episodes) if not e['success']],
+    }
+
+
+def tasks_for(robot: WheeledRobot, task_seed: int, n_tasks: int):
+    rng = np.random.default_rng(task_seed)
+    return [random_task(rng, robot) for _ in range(n_tasks)]
+
+
+# --- in process (the matrix) -------------------------------------------------------------------------------------
+def run_cell(layout: str, robot_name: str, seed: int, budget: int, noisy: bool, n_tasks: int) -> dict:
+    """One matrix cell: explore and learn in process with the WallAgent, then n_tasks random tasks."""
+    began = time.monotonic()
+    spec = ROBOTS[robot_name]
+    noise = dict(noise_range_fraction=NOISE['std_fraction_of_max_range'], dropout=NOISE['dropout'],
+                 random_state=seed) if noisy else {}
+    robot, dt = layout_robot(layout, spec['scale'], **noise)
+    dt = spec['dt'] or dt
+    clean_robot, _ = layout_robot(layout, spec['scale'])
+    learned = learn(robot, budget, dt, random_state=seed)
+    cell = {'layout': layout, 'robot': robot_name, 'exploration_seed': seed, 'exploration_budget': budget,
+            'noisy': noisy, 'task_seed': TASK_SEED_BASE + seed - 1000, 'samples': learned.samples,
+            'learning_detail': learned.detail}
+    tasks = tasks_for(clean_robot, cell['task_seed'], n_tasks)
+    if learned.model is None:
+        episodes = [{'success': False, 'reached': False, 'final_error': math.inf, 'path_ratio': math.nan,
+                     'longest_blind_steps': 0, 'longest_blind_ratio': None,
+                     'detail': f'no ready model after {learned.samples} samples: {learned.detail}'} for _ in tasks]
+    else:
+        episodes = []
+        for start, goal_pose in tasks:
+            reading = sensor2_goal_reading(clean_robot, goal_pose)
+            episode = run_episode(robot, learned.model, start, reading, tolerance=TOLERANCE, dt=dt)
+            episodes.append(score(clean_robot, episode, start, goal_pose, reading, TOLERANCE))
+    cell.update(summarise(episodes))
+    cell['wall_seconds'] = round(time.monotonic() - began, 1)
+    return cell
+
+
+def matrix_cells(seeds, budgets, robots=tuple(ROBOTS), layouts=('paper', 'overlap')) -> list:
+    """Clean cells of every layout, then the noisy ones on `paper`; the headline's own cells (paper, default) first."""
+    cells = [(layout, robot, seed, budget, False) for layout in layouts for robot in robots
+             for budget in budgets for seed in seeds]
+    cells += [('paper', robot, seed, budget, True) for robot in robots for budget in budgets for seed in seeds]
+    return cells
+
+
+def run_matrix(cells, n_tasks: int, workers: int, on_cell=None) -> list:
+    results = []
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        futures = [pool.submit(run_cell, *cell, n_tasks) for cell in cells]
+        for future in futures:
+            results.append(future.result())
+            if on_cell:
+                on_cell(results)
+    return results
+
+
+def aggregate(cells: list) -> dict:
+    """Per (layout, robot, budget, noisy): the cells' success rates over seeds (min / mean), median path ratio and
+    the largest longest-blind ratio."""
+    groups = {}
+    for c in cells:
+        key = f"{c['layout']}/{c['robot']}/{c['exploration_budget']}/{'noisy' if c['noisy'] else 'clean'}"
+        groups.setdefault(key, []).append(c)
+    out = {}
+    for key, cs in sorted(groups.items()):
+        rates = [c['success_rate'] for c in cs]
+        paths = [c['median_path_ratio'] for c in cs if c['median_path_ratio'] is not None]
+        out[key] = {'seeds': [c['exploration_seed'] for c in cs], 'success_rate_min': min(rates),
+                    'success_rate_mean': float(np.mean(rates)), 'median_path_ratio_median':
+                    float(np.median(paths)) if paths else None,
+                    'samples': [c['samples'] for c in cs],
+                    'longest_blind_steps_max': max(c['longest_blind_steps_max'] or 0 for c in cs)}
+    return out
+
+
+# --- through the graph (the headline) ------------------------------------------------------------------------------
+def run_graph_cell(work_dir: Path, budget: int, seed: int, n_tasks: int, layout: str = 'paper') -> dict:
+    from mm_bringup.wall_graph import WallGraph
+    robot, dt = layout_robot(layout)
+    task_seed = TASK_SEED_BASE + seed - 1000
+    tasks = tasks_for(robot, task_seed, n_tasks)
+    began = time.monotonic()
+    with WallGraph(work_dir, exploration_steps=budget, seed=seed, dt=dt,
+                   sim_params_files=[simulator_params_file(), layout_file(layout)]) as graph:
+        graph.wait_learned(timeout=1800.0)
+        learning_seconds = time.monotonic() - began
+        samples = graph.samples
+        paper = run_graph_task(graph, robot, PAPER_START, PAPER_GOAL_POSE, PAPER_TOLERANCE)
+        episodes = [run_graph_task(graph, robot, start, goal_pose, TOLERANCE) for start, goal_pose in tasks]
+    cell = {'layout': layout, 'robot': 'default', 'exploration_seed': seed, 'exploration_budget': budget,
+            'task_seed': task_seed, 'samples': int(samples), 'learning_wall_seconds': round(learning_seconds, 1),
+            'stalled_episodes': sum(e['detail'].startswith('stalled') for e in episodes + [paper]),
+            'seconds_per_episode': float(np.mean([e['wall_seconds'] for e in episodes])), 'paper_task': paper}
+    cell.update(summarise(episodes))
+    return cell
+
+
+def run_graph_task(graph, robot: WheeledRobot, start, goal_pose, tolerance: float, timeout: float = 120.0) -> dict:
     """One scored episode; a stalled lockstep loop (no outcome within `timeout` wall seconds) counts as a failure
     and the next task's reset restarts the loop, so one stall does not end the benchmark."""
     reading = sensor2_goal_reading(robot, goal_pose)
@@ -64,63 +198,100 @@ def run_task(graph: WallGraph, robot: WheeledRobot, start, goal_pose, tolerance:
     except TimeoutError as exc:
         return {'success': False, 'reached': False, 'final_error': math.inf, 'path_ratio': math.nan,
                 'blind_fraction': math.nan, 'steps': 0, 'wall_seconds': timeout, 'final_heading': math.nan,
-                'detail': f'stalled: {exc}'}
-    return score(robot, episode, start, goal_pose, reading, tolerance)
+                'longest_blind_steps': 0, 'longest_blind_ratio': None, 'detail': f'stalled: {exc}'}
+    result = score(robot, episode, start, goal_pose, reading, tolerance)
+    result['wall_seconds'] = episode.wall_seconds
+    return result
 
 
-def run_condition(work_dir: Path, n_tasks: int, exploration_steps: int, tolerance: float, noise_fraction: float,
-                  dropout: float, seed: int) -> dict:
-    robot = WheeledRobot()
-    rng = np.random.default_rng(seed)
-    tasks = [random_task(rng, robot) for _ in range(n_tasks)]
-    began = time.monotonic()
-    with WallGraph(work_dir, exploration_steps=exploration_steps, noise_range_fraction=noise_fraction,
-                   dropout=dropout, seed=seed) as graph:
-        graph.wait_learned(timeout=1800.0)
-        learning_seconds = time.monotonic() - began
-        learning_samples = graph.samples
-        paper = run_task(graph, robot, PAPER_START, PAPER_GOAL_POSE, PAPER_TOLERANCE)
-        episodes = [run_task(graph, robot, start, goal_pose, tolerance) for start, goal_pose in tasks]
-    stalls = sum(e['detail'].startswith('stalled') for e in episodes + [paper])
-    ok = [e for e in episodes if e['success']]
-    finite_errors = [e['final_error'] for e in episodes]
-    return {
-        'tasks': n_tasks,
-        'stalled_episodes': stalls,
-        'success_rate': len(ok) / n_tasks,
-        'median_final_error': float(np.median(finite_errors)),
-        'median_path_ratio': float(np.median([e['path_ratio'] for e in ok])) if ok else None,
-        'blind_fraction': float(np.mean([e['blind_fraction'] for e in ok])) if ok else None,
-        'share_of_tasks_crossing_blind': float(np.mean([e['blind_fraction'] > 0 for e in ok])) if ok else None,
-        'learning_samples': int(learning_samples),
-        'learning_wall_seconds': round(learning_seconds, 1),
-        'seconds_per_episode': float(np.mean([e['wall_seconds'] for e in episodes])),
-        'steps_per_episode_median': float(np.median([e['steps'] for e in episodes])),
-        'failures': [{'task': i, 'detail': e['detail'], 'final_error': e['final_error']}
-                     for i, e in enumerate(episodes) if not e['success']],
-        'paper_task': paper,
-    }
+def headline(cells: dict) -> dict:
+    """The benchmark's headline figures: the graph cells on `paper` (10 000-step budget first)."""
+    main = cells.get('10000') or next(iter(cells.values()))
+    return {'success_rate': main['success_rate'], 'median_final_error': main['median_final_error'],
+            'median_path_ratio': main['median_path_ratio'], 'samples': main['samples'],
+            'longest_blind_steps_max': main['longest_blind_steps_max'],
+            'success_rate_3000': cells['3000']['success_rate'] if '3000' in cells else None}
 
 
-def run(output_dir: Path, quick: bool) -> dict:
-    n_tasks = 20 if quick else 120
-    exploration_steps = 10000
-    tolerance = 0.01
+def run(output_dir: Path, quick: bool, workers: int = 2) -> dict:
+    """`make bench`: the graph headline (2 x 40 tasks, ~15 min) and the in-process matrix (5 seeds x 40 tasks per
+    cell: several hours on 2 cores; --quick: one seed, 10 tasks, the 3 000-step budget, ~15 min in all)."""
+    n_tasks = 10 if quick else 40
+    budgets = (3000,) if quick else BUDGETS
+    graph_cells = {}
     with tempfile.TemporaryDirectory(prefix='wall_task_') as tmp:
-        clean = run_condition(Path(tmp) / 'clean', n_tasks, exploration_steps, tolerance, 0.0, 0.0, seed=1)
-        noisy = run_condition(Path(tmp) / 'noisy', n_tasks, exploration_steps, tolerance, 0.01, 0.05, seed=2)
-    return {
-        'success_rate': clean['success_rate'],
-        'median_final_error': clean['median_final_error'],
-        'median_path_ratio': clean['median_path_ratio'],
-        'blind_fraction': clean['blind_fraction'],
-        'learning_samples': clean['learning_samples'],
-        'seconds_per_episode': clean['seconds_per_episode'],
-        'success_rate_noisy': noisy['success_rate'],
-        'tolerance_m': tolerance,
-        'noise': {'std_fraction_of_max_range': 0.01, 'dropout': 0.05},
-        'paper_task': clean['paper_task'],
-        'clean': clean,
-        'noisy': noisy,
-        'targets': {'success_rate': 0.95, 'success_rate_noisy': 0.9, 'median_path_ratio_max': 1.3},
+        for budget in budgets:
+            graph_cells[str(budget)] = run_graph_cell(Path(tmp) / str(budget), budget, HEADLINE_SEEDS[budget], n_tasks)
+    seeds = EXPLORATION_SEEDS[:1] if quick else EXPLORATION_SEEDS
+    matrix = run_matrix(matrix_cells(seeds, budgets), n_tasks, workers)
+    return result_json(graph_cells, matrix, n_tasks, complete=True)
+
+
+def result_json(graph_cells: dict, matrix: list, n_tasks: int, complete: bool, note: str = '') -> dict:
+    out = {
+        'layout': 'paper',
+        'tolerance_m': TOLERANCE,
+        'noise': NOISE,
+        'seeds': {'exploration': list(EXPLORATION_SEEDS), 'headline_exploration': HEADLINE_SEEDS,
+                  'task_seed': f'{TASK_SEED_BASE} + (exploration seed - 1000)',
+                  'disjoint_from': 'tuning seeds 100-119 (mm_bringup.tune_wall)'},
+        'graph': graph_cells,
+        'matrix': {'in_process': 'mm_bringup.wall_experiment (the WallAgent class of the switching_controller node, '
+                                 'model through the same message)',
+                   'tasks_per_cell': n_tasks, 'complete': complete, 'note': note,
+                   'summary': aggregate(matrix) if matrix else {}, 'cells': matrix},
+        'targets': {'success_rate': 0.95, 'longest_blind_ratio_max': 2.0},
     }
+    if graph_cells:
+        out.update(headline(graph_cells))
+    return out
+
+
+def main(argv=None) -> int:
+    """Run parts of the benchmark and merge them into the JSON (for runs that do not fit in one sitting)."""
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument('--output', default='results/wall_task.json')
+    parser.add_argument('--graph', type=int, nargs='*', default=[], help='graph headline budgets to run')
+    parser.add_argument('--matrix', action='store_true', help='run matrix cells')
+    parser.add_argument('--seeds', type=int, nargs='*', default=list(EXPLORATION_SEEDS))
+    parser.add_argument('--budgets', type=int, nargs='*', default=list(BUDGETS))
+    parser.add_argument('--robots', nargs='*', default=list(ROBOTS))
+    parser.add_argument('--layouts', nargs='*', default=['paper', 'overlap'])
+    parser.add_argument('--no-noisy', action='store_true')
+    parser.add_argument('--tasks', type=int, default=40)
+    parser.add_argument('--workers', type=int, default=2)
+    parser.add_argument('--note', default='')
+    args = parser.parse_args(argv)
+    path = Path(args.output)
+    old = json.loads(path.read_text()) if path.is_file() else {}
+    graph_cells = dict(old.get('graph', {}))
+    matrix = list(old.get('matrix', {}).get('cells', []))
+
+    def write(complete=False):
+        data = result_json(graph_cells, matrix, args.tasks, complete, args.note)
+        tmp = path.with_suffix('.json.tmp')
+        tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + '\n')
+        os.replace(tmp, path)
+    with tempfile.TemporaryDirectory(prefix='wall_task_') as tmp:
+        for budget in args.graph:
+            graph_cells[str(budget)] = run_graph_cell(Path(tmp) / str(budget), budget, HEADLINE_SEEDS[budget],
+                                                      args.tasks)
+            write()
+    if args.matrix:
+        cells = matrix_cells(args.seeds, args.budgets, args.robots, args.layouts)
+        if args.no_noisy:
+            cells = [c for c in cells if not c[4]]
+        done = {(c['layout'], c['robot'], c['exploration_seed'], c['exploration_budget'], c['noisy']) for c in matrix}
+        todo = [c for c in cells if c not in done]
+        kept = list(matrix)
+
+        def on_cell(results):
+            matrix[:] = kept + results
+            write()
+        run_matrix(todo, args.tasks, args.workers, on_cell)
+    write()
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
