@@ -5,10 +5,13 @@
 Inputs (what the robot senses and commands, nothing else): the five `wheeled/range/*` readings, grouped by stamp
 into one sample per simulator step, and its own `wheeled/wheel_velocity_controller/commands`. The command that moved
 the robot to a sample travels on another topic and may arrive after the sample's readings, so a sample with no command
-yet waits for it up to `command_wait` wall seconds. A sample that does not follow exactly one command (a reset, a lost
-command) breaks the chain of consecutive samples: it is not used as a Jacobian pair and the state tracker starts
-afresh from it. A step the simulator re-publishes (it does so until the loop starts) is no new sample: its state is
-sent again so a controller that joined late can start the loop.
+yet waits for it - for as long as it takes, never decided by a wall-clock timeout (the learned data must not depend on
+machine load). It stops waiting when the simulator shows that no command will come: it re-publishes the sample's step
+(it does so only after a period without a command, e.g. after a reset) or publishes a newer one. A wait longer than
+`stall_warning` wall seconds is reported (throttled), not resolved. A sample that does not follow exactly one command
+(a reset, a lost command) breaks the chain of consecutive samples: it is not used as a Jacobian pair and the state
+tracker starts afresh from it. A step the simulator re-publishes (it does so until the loop starts) is no new sample:
+its state is sent again so a controller that joined late can start the loop.
 
 After `learn_after` samples the SensorManifoldModel (dimension, elastic grid, Jacobians, virtual sensor space) is
 fitted in a background thread (on copies: the live model is never changed, a finished fit is swapped in on the
@@ -88,11 +91,10 @@ class SensorManifold(Node):
                                   'not persisted); the model reaches the controller as a message', read_only=True)
         self.hold_steps = declare(self, 'hold_steps', 3, 'Lost (NaN) readings bridged with the last value for '
                                   'this many steps', min_value=0, max_value=100)
-        # Longer than the controller ever takes to answer (it may itself wait for a bumper reading), so that only a
-        # reset or a lost command breaks the chain; a reset's first state comes this much later.
-        self.command_wait = declare(self, 'command_wait', 1.0, 'Wall seconds a sample waits for the command that '
-                                    'produced it before it counts as a break in the chain', min_value=0.0,
-                                    max_value=5.0)
+        # Reporting only: what is learned never depends on how long a message took (determinism under load).
+        self.stall_warning = declare(self, 'stall_warning', 2.0, 'Wall seconds a sample may wait for its command '
+                                     'before a (throttled) warning names what is missing; the wait goes on',
+                                     min_value=0.1, max_value=3600.0)
         if len(self.grid_shape) != 2 or min(self.grid_shape) < 3:
             raise ValueError('grid_shape must be [rows, cols], each >= 3')
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -124,10 +126,10 @@ class SensorManifold(Node):
         self.create_subscription(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands', self._on_command,
                                  LOOP_QOS)
         # Wall-clock timers: with use_sim_time the sim clock stands still while the loop waits (for the model, or
-        # for the command of a waiting sample).
+        # for the command of a waiting sample). Neither decides what is learned.
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(0.2, self._collect_fit, clock=self.steady)
-        self.create_timer(0.02, self._expire_waiting, clock=self.steady)
+        self.create_timer(0.5, self._report_stall, clock=self.steady)
         self._load()
 
     def _on_set_parameters(self, params) -> SetParametersResult:
@@ -138,8 +140,8 @@ class SensorManifold(Node):
                     setattr(self, p.name, int(p.value))
                 if p.name == 'hold_steps' and self.tracker is not None:
                     self.tracker.hold_steps = int(p.value)
-                if p.name == 'command_wait':
-                    self.command_wait = float(p.value)
+                if p.name == 'stall_warning':
+                    self.stall_warning = float(p.value)
         return result
 
     def _reject(self, what: str, reason: str) -> None:
@@ -255,12 +257,18 @@ class SensorManifold(Node):
             self.waiting = None
             self._on_sample(reading, stamp)
 
-    def _expire_waiting(self) -> None:
-        """Timer: a sample whose command never came (a reset, a republished step) is taken as a chain break."""
-        if self.waiting is not None and (self.steady.now().nanoseconds - self.waiting[2]) * 1e-9 >= self.command_wait:
-            reading, stamp, _ = self.waiting
-            self.waiting = None
-            self._on_sample(reading, stamp)
+    def _report_stall(self) -> None:
+        """Timer: say what a long-waiting sample misses; the wait itself goes on (only the simulator ends it)."""
+        if self.waiting is None:
+            return
+        waited = (self.steady.now().nanoseconds - self.waiting[2]) * 1e-9
+        if waited >= self.stall_warning:
+            stamp = self.waiting[1]
+            self.get_logger().warn(
+                f'sample {stamp.sec + stamp.nanosec * 1e-9:.3f} s has waited {waited:.1f} s for the '
+                'wheeled/wheel_velocity_controller/commands message that produced it (no state published meanwhile); '
+                'it is taken as a chain break once the simulator re-sends that step or sends a newer one',
+                throttle_duration_sec=5.0)
 
     def _stamp_problem(self, stamp: int) -> Optional[str]:
         now = self.get_clock().now().nanoseconds
@@ -289,8 +297,14 @@ class SensorManifold(Node):
                 del self.pending[old]
             self._publish_model()
             if self.last_sample_ns is not None and stamp <= self.last_sample_ns:
-                # A re-published step: already a sample. Re-send its state unless it still waits.
-                if self.waiting is None and self.last_state is not None:
+                # A re-published step: already a sample. The simulator re-sends a step only after a period without a
+                # command, and the command that produced a step left before the step did: a sample still waiting
+                # for its command gets none (a reset). Otherwise its state is sent again.
+                if self.waiting is not None and stamp == self.last_sample_ns:
+                    reading, waiting_stamp, _ = self.waiting
+                    self.waiting = None
+                    self._on_sample(reading, waiting_stamp)
+                elif self.waiting is None and self.last_state is not None:
                     self.state_pub.publish(self.last_state)
                 return
             self.last_sample_ns = stamp
@@ -298,7 +312,7 @@ class SensorManifold(Node):
             if self.waiting is not None:             # the earlier sample's command will not come any more
                 waiting, self.waiting = self.waiting, None
                 self._on_sample(*waiting[:2])
-            if self.readings and not self.commands_since_sample and self.command_wait > 0:
+            if self.readings and not self.commands_since_sample:
                 self.waiting = (reading, msg.header.stamp, self.steady.now().nanoseconds)
             else:
                 self._on_sample(reading, msg.header.stamp)

@@ -131,7 +131,11 @@ def test_bad_commands_are_ignored_and_a_missing_command_breaks_the_chain(rig):
     state = rig.wait_states(2)
     assert list(state.in_range) == [False, True, True, False, False]
     assert rig.node.continuous == [True]
-    # No command before the next step: that sample does not follow from the previous one.
+    # No command before the next step (a reset): the sample waits for its command however long that takes, and is
+    # a chain break once the simulator re-sends the step (it does so only when no command came).
+    rig.publish_step(3, [0.5, 0.6, 0.7, INF, INF])
+    rig.ros.spin_for(1.5)
+    assert len(rig.states) == 2 and rig.node.waiting is not None
     rig.publish_step(3, [0.5, 0.6, 0.7, INF, INF])
     state = rig.wait_states(3)
     assert state.samples == 3 and rig.node.continuous == [True, False]

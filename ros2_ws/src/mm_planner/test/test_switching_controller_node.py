@@ -67,12 +67,15 @@ class Rig:
             self.ros.close()
             raise
 
-    def state(self, sec, sensor1=(0.6, 0.5, 0.6), sensor2=(INF, INF), space=0, coordinates=()):
+    def state(self, sec, sensor1=(0.6, 0.5, 0.6), sensor2=(INF, INF), space=0, coordinates=(), bumper=None):
+        """A state, and the step's bumper reading when given (the explorer waits for it, however long)."""
         msg = ManifoldState(sensor1=[float(v) for v in sensor1], sensor2=[float(v) for v in sensor2],
                             in_range=[math.isfinite(v) for v in list(sensor1) + list(sensor2)],
                             active_space=space, coordinates=[float(v) for v in coordinates])
         msg.header.stamp.sec = sec
         self.state_pub.publish(msg)
+        if bumper is not None:
+            self.bumper.publish(Bool(data=bumper))
 
     def call(self, reading, group=SensorGoal.SENSOR2, tolerance=0.0, stamp_sec=0):
         goal = SensorGoal(sensor_group=group, reading=[float(v) for v in reading], tolerance=float(tolerance))
@@ -89,7 +92,7 @@ def test_explores_one_command_per_state_then_learns():
     rig = Rig({'exploration_steps': 6, 'random_seed': 1})
     try:
         for k in range(1, 5):
-            rig.state(k)
+            rig.state(k, bumper=False)
             assert rig.ros.spin_until(lambda: len(rig.commands) == k), f'no command for state {k}'
             u = np.array(rig.commands[-1].data)
             assert u.shape == (2,) and np.all(np.isfinite(u)) and np.max(np.abs(u)) <= 7.0
@@ -108,7 +111,7 @@ def test_explores_one_command_per_state_then_learns():
         rig.state(6)
         assert rig.ros.spin_until(lambda: len(rig.commands) == 6)
         # Exploration budget spent: the next state gets no command, the loop pauses for learning.
-        rig.state(7)
+        rig.state(7, bumper=False)
         assert rig.ros.spin_until(lambda: rig.phase() == 'LEARNING')
         rig.ros.spin_for(0.3)
         assert len(rig.commands) == 6 and rig.node.explored == 6
@@ -120,9 +123,9 @@ def test_a_step_sent_again_after_its_command_was_lost_gets_the_same_command():
     """The simulator re-sends a step only when no command came for its republish period (e.g. it restarted and the
     command went to its predecessor): the controller sends that step's command again. A re-send right after the answer
     crossed the command and is dropped (a second command would advance the simulator one step too far)."""
-    rig = Rig({'exploration_steps': 10, 'random_seed': 1, 'bumper_wait': 0.0})
+    rig = Rig({'exploration_steps': 10, 'random_seed': 1})
     try:
-        rig.state(1)
+        rig.state(1, bumper=False)
         assert rig.ros.spin_until(lambda: len(rig.commands) == 1)
         rig.state(1)                                               # crossed the command: dropped
         rig.ros.spin_for(0.1)
@@ -131,7 +134,7 @@ def test_a_step_sent_again_after_its_command_was_lost_gets_the_same_command():
         rig.state(1)                                               # the command was lost: sent again, unchanged
         assert rig.ros.spin_until(lambda: len(rig.commands) == 2)
         assert list(rig.commands[1].data) == list(rig.commands[0].data) and rig.node.explored == 1
-        rig.state(2)                                               # the loop goes on
+        rig.state(2, bumper=False)                                 # the loop goes on
         assert rig.ros.spin_until(lambda: len(rig.commands) == 3) and rig.node.explored == 2
     finally:
         rig.ros.close()
@@ -145,16 +148,16 @@ def test_a_model_that_has_not_seen_sensor2_sends_it_exploring_again(learned):
     rig = Rig({'exploration_steps': 8, 'random_seed': 1})
     try:
         for k in range(1, 10):
-            rig.state(k)
+            rig.state(k, bumper=False)
             assert rig.ros.spin_until(lambda: rig.phase() == 'LEARNING' or len(rig.commands) == k)
         assert rig.phase() == 'LEARNING' and len(rig.commands) == 8
         rig.model_pub.publish(blind_message(msg))
         # Exploring again, and the state that was waiting is answered at once.
         assert rig.ros.spin_until(lambda: rig.phase() == 'EXPLORING' and len(rig.commands) == 9)
         assert 'not seen sensor 2' in rig.status[-1].detail
-        rig.state(10)
+        rig.state(10, bumper=False)
         assert rig.ros.spin_until(lambda: len(rig.commands) == 10)
-        rig.state(11)                                              # 2 more steps (8 // 4) spent: learning again
+        rig.state(11, bumper=False)                                # 2 more steps (8 // 4) spent: learning again
         assert rig.ros.spin_until(lambda: rig.phase() == 'LEARNING')
         rig.model_pub.publish(msg)
         assert rig.ros.spin_until(lambda: rig.phase() == 'WAITING_FOR_GOAL')
