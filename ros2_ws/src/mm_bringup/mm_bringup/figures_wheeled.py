@@ -1,6 +1,6 @@
 """Figures of the wheeled-robot experiment (paper Section 2.5) as PNGs under results/figures/.
 
-    ./mm python -m mm_bringup.figures_wheeled [--output results/figures] [--steps 10000] [--seed 0]
+    ./mm python -m mm_bringup.figures_wheeled [--output results/figures] [--steps 10000] [--seed 0] [--layout paper]
 
 fig7_sensor1_grid.png        samples of the three front readings (sensor 1) and the elastic grid fitted to them
 fig8_trajectory_spaces.png   one reaching episode in (a) the grid coordinates of sensor 1, (b) the virtual sensor-1
@@ -344,19 +344,23 @@ def main(argv=None) -> int:
     parser.add_argument('--output', default='results/figures')
     parser.add_argument('--steps', type=int, default=10000, help='exploration steps')
     parser.add_argument('--seed', type=int, default=0, help='exploration seed')
-    parser.add_argument('--goal', type=float, nargs=3, default=(0.0, 0.25, 0.0), metavar=('X', 'Y', 'THETA'),
-                        help='pose whose sensor-2 reading is the goal')
+    parser.add_argument('--layout', default='paper', help='sensor layout (mm_sim/layouts): paper (no pose where both '
+                        'groups see the wall, as in the paper) or overlap (the simulator\'s default)')
+    parser.add_argument('--goal', type=float, nargs=3, default=None, metavar=('X', 'Y', 'THETA'),
+                        help='pose whose sensor-2 reading is the goal (default: the benchmark\'s paper task of the '
+                        'layout)')
     parser.add_argument('--tolerance', type=float, default=0.005, help='controller tolerance on sensor 2 [m]')
     args = parser.parse_args(argv)
 
-    from mm_bringup.wall_experiment import PAPER_START, explore, run_episode, sensor2_goal_reading, success
+    from mm_bringup.bench.wall_task import PAPER_GOAL_POSES
+    from mm_bringup.wall_experiment import (PAPER_START, explore, layout_robot, run_episode, sensor2_goal_reading,
+                                            success)
     from mm_manifold.sensor_manifold import SensorManifoldModel, group_in_range
-    from mm_sim.wheeled_model import WheeledRobot
 
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    dt = 0.05
-    robot = WheeledRobot()
+    robot, dt = layout_robot(args.layout)
+    goal_pose = tuple(args.goal) if args.goal is not None else PAPER_GOAL_POSES[args.layout]
     log = explore(robot, args.steps, random_state=args.seed, dt=dt)
     model = SensorManifoldModel(dt).fit(log.readings, log.commands, log.continuous)
     print(f'[figures_wheeled] model: {model.n_samples_} samples, {model.n_excursions_} excursions, '
@@ -365,7 +369,7 @@ def main(argv=None) -> int:
     plot_samples_and_grid(model, S1, out / 'fig7_sensor1_grid.png')
     print('[figures_wheeled] fig7 written', flush=True)
 
-    goal_reading = sensor2_goal_reading(robot, tuple(args.goal))
+    goal_reading = sensor2_goal_reading(robot, goal_pose)
     _, goal_coordinates, _ = model.virtual_.goal_route(goal_reading)
     episode = run_episode(robot, model, PAPER_START, goal_reading, tolerance=args.tolerance, dt=dt)
     ok, error = success(robot, episode, goal_reading, args.tolerance)
