@@ -139,6 +139,16 @@ def matrix_cells(seeds, budgets, robots=tuple(ROBOTS), layouts=('paper', 'overla
     return cells
 
 
+def bench_cells(quick: bool) -> list:
+    """The cells `make bench` runs: every exploration seed for the headline's layout and robot (paper, default) at
+    both budgets, one seed (1000) for every other robot, layout and the noisy condition (the full matrix_cells()
+    with five seeds each takes about 4 x longer: `python -m mm_bringup.bench.wall_task --matrix`)."""
+    if quick:
+        return [('paper', 'default', 1000, 3000, False), ('overlap', 'default', 1000, 3000, False)]
+    cells = [('paper', 'default', seed, budget, False) for seed in EXPLORATION_SEEDS for budget in BUDGETS]
+    return cells + [c for c in matrix_cells((EXPLORATION_SEEDS[0],), BUDGETS) if c not in cells]
+
+
 def run_matrix(cells, n_tasks: int, workers: int, on_cell=None) -> list:
     results = []
     with ProcessPoolExecutor(max_workers=workers) as pool:
@@ -216,17 +226,17 @@ def headline(cells: dict) -> dict:
 
 
 def run(output_dir: Path, quick: bool, workers: int = 2) -> dict:
-    """`make bench`: the graph headline (2 x 40 tasks, ~15 min) and the in-process matrix (5 seeds x 40 tasks per
-    cell: several hours on 2 cores; --quick: one seed, 10 tasks, the 3 000-step budget, ~15 min in all)."""
+    """`make bench`: the graph headline (2 x 40 tasks) and the in-process cells of bench_cells() (40 tasks each, two
+    at a time); --quick: the 3 000-step graph cell and two in-process cells, 10 tasks each."""
     n_tasks = 10 if quick else 40
     budgets = (3000,) if quick else BUDGETS
     graph_cells = {}
     with tempfile.TemporaryDirectory(prefix='wall_task_') as tmp:
         for budget in budgets:
             graph_cells[str(budget)] = run_graph_cell(Path(tmp) / str(budget), budget, HEADLINE_SEEDS[budget], n_tasks)
-    seeds = EXPLORATION_SEEDS[:1] if quick else EXPLORATION_SEEDS
-    matrix = run_matrix(matrix_cells(seeds, budgets), n_tasks, workers)
-    return result_json(graph_cells, matrix, n_tasks, complete=True)
+    matrix = run_matrix(bench_cells(quick), n_tasks, workers)
+    return result_json(graph_cells, matrix, n_tasks, complete=not quick,
+                       note='make bench cells: 5 seeds for paper/default, seed 1000 for the rest' if not quick else '')
 
 
 def result_json(graph_cells: dict, matrix: list, n_tasks: int, complete: bool, note: str = '') -> dict:

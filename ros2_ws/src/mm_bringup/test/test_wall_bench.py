@@ -1,0 +1,42 @@
+"""The wall benchmark's plumbing: the longest blind stretch the controller reports in its status detail is read back
+by the graph harness, and cells summarise their episodes."""
+import math
+
+import numpy as np
+
+from mm_bringup.bench.wall_task import PAPER_GOAL_POSES, bench_cells, matrix_cells, summarise
+from mm_bringup.wall_experiment import layout_robot, sensor2_goal_reading
+from mm_bringup.wall_graph import GraphEpisode
+from mm_planner.switching_controller import SwitchingController
+from mm_planner.wall_agent import WallAgent
+
+
+def test_the_blind_report_of_the_status_detail_is_read_back():
+    agent = WallAgent(0.05, exploration_steps=0)
+    agent.controller = SwitchingController(0.05)
+    agent.controller.longest_blind, agent.controller.watchdog_trips = (57, 23), 1
+    episode = GraphEpisode(detail=f'sensor-2 error 0.0040 m; {agent.blind_report()}')
+    assert episode.longest_blind == (57, 23)
+    assert GraphEpisode(detail='stalled').longest_blind == (0, 0)
+
+
+def test_cells_and_summaries():
+    full = matrix_cells((1000, 1001, 1002, 1003, 1004), (3000, 10000))
+    assert len(full) == 2 * 3 * 5 * 2 + 3 * 5 * 2 and len(set(full)) == len(full)
+    cells = bench_cells(quick=False)
+    assert len(set(cells)) == len(cells) and set(cells) <= set(full)
+    assert sum(c[:2] == ('paper', 'default') and not c[4] for c in cells) == 10       # 5 seeds x 2 budgets
+    episodes = [{'success': True, 'final_error': 0.004, 'path_ratio': 1.2, 'longest_blind_steps': 30,
+                 'longest_blind_ratio': 1.5, 'detail': ''},
+                {'success': False, 'final_error': math.inf, 'path_ratio': 3.0, 'longest_blind_steps': 90,
+                 'longest_blind_ratio': 3.0, 'detail': 'lost'}]
+    s = summarise(episodes)
+    assert s['success_rate'] == 0.5 and s['median_path_ratio'] == 1.2 and s['longest_blind_steps_max'] == 90
+    assert s['share_longest_blind_over_2x_predicted'] == 0.5 and s['failures'][0]['task'] == 1
+
+
+def test_the_paper_task_goal_is_seen_by_sensor2_alone_on_each_layout():
+    for layout, pose in PAPER_GOAL_POSES.items():
+        robot, _ = layout_robot(layout)
+        assert np.all(np.isfinite(sensor2_goal_reading(robot, pose)))
+        assert not np.all(np.isfinite(robot.read(pose, noisy=False)[:3]))
