@@ -143,22 +143,25 @@ def learn(robot: WheeledRobot, exploration_steps: int, dt: float, random_state: 
     """The graph's exploration and learning in process: the WallAgent explores until it asks for a model, the
     learner fits on every sample so far and the model reaches the agent through its message; a model that is not
     ready sends the agent exploring again (exploration_steps // 4 more) and the learner refits, as sensor_manifold
-    does, until the agent waits for a goal or `max_samples` (default 4 x exploration_steps) were explored."""
+    does, until the agent waits for a goal, gives up, or `max_samples` (default 4 x exploration_steps) were
+    explored."""
     max_samples = max_samples or 4 * exploration_steps
     agent = WallAgent(dt, exploration_steps=exploration_steps, random_state=random_state)
     pose, bumped = tuple(start), False
     R, U = [], []
-    model = None
-    while agent.phase != ControllerStatus.PHASE_WAITING_FOR_GOAL and len(R) < max_samples:
+    model, r = None, None
+    while (agent.phase in (ControllerStatus.PHASE_EXPLORING, ControllerStatus.PHASE_LEARNING)
+           and len(R) < max_samples):
         if agent.phase == ControllerStatus.PHASE_LEARNING:
             continuous = np.ones(len(R), dtype=bool)
             continuous[-1:] = False
             model = SensorManifoldModel(dt).fit(np.array(R), np.array(U), continuous)
-            agent.step(Observation(model=agent_model(robot, model)))
-            continue
-        r = robot.read(pose)
-        u = agent.step(Observation(state=True, stamp=len(R), readings=r, bumped=bumped,
-                                   learner_samples=len(R) + 1)).command
+            # A model that is not ready sends the agent exploring again: it answers the state it left unanswered.
+            u = agent.step(Observation(model=agent_model(robot, model))).command
+        else:
+            r = robot.read(pose)
+            u = agent.step(Observation(state=True, stamp=len(R), readings=r, bumped=bumped,
+                                       learner_samples=len(R) + 1)).command
         if u is None:
             continue
         R.append(r)
