@@ -50,7 +50,7 @@ def frames_from_bag(bag):
             joints[stamp_ns(js)] = np.array(js.position)
         elif m.topic == '/arm/contact':
             touch = deserialize_message(m.data, Contact)
-            contacts[stamp_ns(touch)] = touch.in_contact_at_frame
+            contacts[stamp_ns(touch)] = touch.arm_in_contact_at_frame      # image_embedding's default label
     return {stamp: (images[stamp], joints[stamp], value) for stamp, value in contacts.items()
             if stamp in images and stamp in joints}
 

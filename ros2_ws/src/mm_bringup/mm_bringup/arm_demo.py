@@ -35,6 +35,8 @@ def run_arm_demo(graph: ProcessGraph, log: Callable[[str], None] = print, timeou
     (along the executed motions), exploration_steps, exploration_contact_frames (touch readings while exploring),
     exploration_placements, object_in_way (every goal needed a way round), learn_s, total_s, ground_truth_subscribers
     (topic -> subscribing node names, taken while all nodes run: only evaluation tools may appear).
+    successes (placements whose goal was reached without contact of any arm part), contact_placements (placements
+    whose executed motion touched the object with some arm part).
     `embedding_params` are extra parameters of image_embedding (e.g. model_path)."""
     from mm_sim.arm_model import ArmModel
     t_start = time.monotonic()
@@ -80,6 +82,7 @@ def run_arm_demo(graph: ProcessGraph, log: Callable[[str], None] = print, timeou
         last = results[-1]
         return dict(
             reached=all(r['reached'] for r in results), phase=last['outcome'], detail=last['detail'],
+            successes=sum(r['success'] for r in results), contact_placements=sum(r['contact'] for r in results),
             contact_count=sum(r['contact_frames'] for r in results),
             hand_contact_placements=sum('hand' in r['contact_parts'] for r in results),
             placements=results, execution_steps=sum(r['steps'] for r in results),

@@ -119,7 +119,8 @@ def fig13(out: Path, ev) -> None:
         model.set_object_position(model.random_object_position(rng))
         truth, _ = truth_move_maps(model, grid)
         task = choose_task(model, grid, truth, rng)
-    pred = learner.predict_collision_map(KeypointExtractor()(model.render(grid.centre(task[0]))))
+    pred = learner.predict_collision_map(KeypointExtractor()(model.render(grid.centre(task[0]))),
+                                         frame_joints=grid.centre(task[0]))
     planner = DPPlanner(grid, clearance_reward=0.0)
     planner.update_collision(pred['collision'], pred['closeness'])
     run = execute_plan(model, grid, planner, task[0], task[1], JointMotion(model))

@@ -51,6 +51,8 @@ from pathlib import Path
 from typing import Dict, Optional, Sequence
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from sklearn.decomposition import PCA
 from sklearn.manifold import LocallyLinearEmbedding
@@ -61,8 +63,9 @@ from mm_manifold.embedding import (REGION_MODELS, ContactQuadric, ContactSphere,
                                    quadratic_features, select_contact_model)
 from mm_manifold.keypoints import FrameKeypoints, KeypointVectorizer, MeanImputer, NearestImputer
 
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 REPRESENTATIONS = ('relative', 'absolute')
+MAP_METHODS = ('keypoint_distance', 'embedding')
 STATIC, SELF, EXTERNAL, UNCLEAR = 0, 1, 2, 3     # label roles
 DEFAULT_JOINT_LIMITS = ((-3.2, -0.8), (0.0, 2.2))
 _VECTORIZER_PARAMS = ('n_labels', 'max_features', 'scale', 'match_ratio', 'max_pixel_shift', 'n_frame_neighbors',
@@ -140,6 +143,67 @@ def joint_features(joints: np.ndarray) -> np.ndarray:
     return np.stack(basis, 1)
 
 
+def rigid_pairs(P: np.ndarray, tolerance: float) -> np.ndarray:
+    """(K, 2) index pairs (i <= j, (i, i) included) of the labels in P (n, S, 2) whose mutual image distance varies by
+    at most `tolerance` px (standard deviation over the n poses): labels on one rigid part. The segment between two
+    of them lies on that part (a link's outline is convex), which fills the gaps between sparse keypoints."""
+    n_labels = P.shape[1]
+    i, j = np.triu_indices(n_labels)
+    d = np.linalg.norm(P[:, i] - P[:, j], axis=2)
+    return np.stack([i, j], 1)[d.std(axis=0) <= tolerance]
+
+
+def background_spots(positions: Sequence[np.ndarray], share: float, spacing: float = 2.0) -> np.ndarray:
+    """(B, 2) image points where keypoints turn up in at least `share` of the frames (positions: one (k, 2) array
+    per frame; counted on a `spacing` px grid, each frame once per cell, over 3 x 3 cells against sub-pixel
+    jitter): the background. The arm covers any one place in a minority of the frames and the object, re-placed
+    every few frames, stays at one place in few of them."""
+    cells = [np.unique(np.floor(np.asarray(p, dtype=float) / spacing).astype(np.int64), axis=0) for p in positions
+             if len(p)]
+    if not cells:
+        return np.zeros((0, 2))
+    allc = np.concatenate(cells)
+    lo = allc.min(0) - 1
+    shape = allc.max(0) - lo + 2
+    count = np.zeros(shape, np.int32)
+    for c in cells:
+        near = np.unique((c[:, None, :] + np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)])[None]
+                          ).reshape(-1, 2), axis=0) - lo
+        count[near[:, 0], near[:, 1]] += 1
+    frequent = np.argwhere(count >= share * len(positions))
+    return (frequent + lo + 0.5) * spacing
+
+
+def object_centres(points: np.ndarray, link: float) -> np.ndarray:
+    """Centroids of the groups of `points` (M, 2) chained by gaps of at most `link` px (0: the points themselves):
+    keypoints spread over one object's texture stand for the object's middle, which its outline surrounds evenly."""
+    if link <= 0 or len(points) < 2:
+        return points
+    pairs = cKDTree(points).query_pairs(link, output_type='ndarray')
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points), len(points)))
+    n, group = connected_components(graph, directed=False)
+    return np.stack([points[group == g].mean(0) for g in range(n)])
+
+
+def segment_distances(P: np.ndarray, pairs: np.ndarray, objects: np.ndarray) -> np.ndarray:
+    """(n,) smallest image distance [px] between the segments `pairs` of the robot's points P (n, S, 2) and the
+    object points objects (n, M, 2) (NaN rows = unseen); inf where no object point is seen."""
+    A, B = P[:, pairs[:, 0]], P[:, pairs[:, 1]]                    # (n, K, 2)
+    AB = B - A
+    length2 = np.maximum(np.einsum('nkc,nkc->nk', AB, AB), 1e-12)
+    best = np.full(len(P), np.inf)
+    for m in range(objects.shape[1]):
+        o = objects[:, m]
+        seen = np.isfinite(o[:, 0])
+        if not seen.any():
+            continue
+        AO = o[seen, None, :] - A[seen]
+        t = np.clip(np.einsum('nkc,nkc->nk', AO, AB[seen]) / length2[seen], 0.0, 1.0)
+        gap = np.linalg.norm(AO - t[..., None] * AB[seen], axis=2).min(axis=1)
+        best[seen] = np.minimum(best[seen], gap)
+    return best
+
+
 def label_roles(raw: np.ndarray, joints: np.ndarray, min_motion: float = 3.0, self_r2: float = 0.9,
                 external_r2: float = 0.3, min_frames: int = 20):
     """Role of each keypoint label (STATIC, SELF, EXTERNAL, UNCLEAR) from raw labelled positions (n, 2L, NaN where
@@ -193,7 +257,9 @@ class ArmStateLearner:
                  vectorizer_params: Optional[Dict] = None, random_state: Optional[int] = 0, n_folds: int = 5,
                  representation: str = 'relative', self_r2: float = 0.9, external_r2: float = 0.3,
                  min_motion: float = 10.0, recent_frames: int = 5, map_resolution: int = 4,
-                 map_threshold: float = 0.5):
+                 map_threshold: float = 0.5, map_method: str = 'keypoint_distance', rigid_tolerance: float = 2.0,
+                 distance_quantile: float = 1.0, distance_margin: float = 0.0, background_share: float = 0.05,
+                 robot_margin: float = 14.0, cluster_radius: float = 30.0):
         lim = np.asarray(joint_limits, dtype=float)
         if lim.shape != (2, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
             raise ValueError('joint_limits must be ((lo0, hi0), (lo1, hi1)) with finite lo < hi')
@@ -213,6 +279,12 @@ class ArmStateLearner:
             raise ValueError('map_threshold must be in (-10, 10)')
         if map_resolution < 2 or map_resolution % 2:
             raise ValueError('map_resolution must be even and >= 2 (the lattice must hold the cell centres)')
+        if map_method not in MAP_METHODS:
+            raise ValueError(f'map_method must be one of {MAP_METHODS}')
+        if not (0.0 <= rigid_tolerance < 100.0 and 0.5 <= distance_quantile <= 1.0 and -100.0 < distance_margin < 100.0
+                and 0.0 < background_share <= 1.0 and 0.0 <= robot_margin < 100.0):
+            raise ValueError('0 <= rigid_tolerance < 100, 0.5 <= distance_quantile <= 1, -100 < distance_margin < 100, '
+                             '0 < background_share <= 1 and 0 <= robot_margin < 100 are required')
         unknown = set(vectorizer_params or {}) - set(_VECTORIZER_PARAMS)
         if unknown:
             raise ValueError(f'unknown vectorizer parameters: {sorted(unknown)}')
@@ -237,6 +309,15 @@ class ArmStateLearner:
         self.recent_frames = int(recent_frames)
         self.map_resolution = int(map_resolution)
         self.map_threshold = float(map_threshold)
+        self.map_method = map_method
+        self.rigid_tolerance = float(rigid_tolerance)
+        self.distance_quantile = float(distance_quantile)
+        self.distance_margin = float(distance_margin)
+        self.background_share = float(background_share)
+        self.robot_margin = float(robot_margin)
+        if not 0.0 <= cluster_radius < 200.0:
+            raise ValueError('cluster_radius must be in [0, 200)')
+        self.cluster_radius = float(cluster_radius)
 
     def get_params(self) -> Dict[str, object]:
         """The constructor's parameters (JSON-able), as saved with the model."""
@@ -246,7 +327,10 @@ class ArmStateLearner:
                     map_margin=self.map_margin, random_state=self.random_state, n_folds=self.n_folds,
                     representation=self.representation, self_r2=self.self_r2, external_r2=self.external_r2,
                     min_motion=self.min_motion, recent_frames=self.recent_frames,
-                    map_resolution=self.map_resolution, map_threshold=self.map_threshold)
+                    map_resolution=self.map_resolution, map_threshold=self.map_threshold, map_method=self.map_method,
+                    rigid_tolerance=self.rigid_tolerance, distance_quantile=self.distance_quantile,
+                    distance_margin=self.distance_margin, background_share=self.background_share,
+                    robot_margin=self.robot_margin, cluster_radius=self.cluster_radius)
 
     # --- fitting ------------------------------------------------------------------------------------------
     def fit(self, keypoints: Sequence[FrameKeypoints], joints, contact, stamps=None) -> 'ArmStateLearner':
@@ -269,6 +353,7 @@ class ArmStateLearner:
             raw = vec.training_vectors_
             self.vectorizer_ = vec
             self._learn_roles(raw, joints)
+            self._fit_distance(keypoints, joints, contact)
             V = self._raw_vectors(raw)
             self.imputer_ = NearestImputer(vec.n_impute_neighbors).fit(V)
             X = self.imputer_.transform(V)
@@ -303,6 +388,51 @@ class ArmStateLearner:
                                     np.nansum(P, axis=0) / np.maximum(seen.sum(0), 1)[:, None], np.nan)
         if self.representation == 'relative' and not np.any(self.label_roles_ == SELF):
             raise ValueError('no keypoint label follows the joint readings; cannot build the relative vector')
+
+    def _fit_distance(self, keypoints: Sequence[FrameKeypoints], joints: np.ndarray, contact: np.ndarray) -> None:
+        """The keypoint-distance contact model: rigid pairs of the robot's labels (over a lattice of the joint range,
+        from the joint regression alone), the background spots, the distance of every training frame between the
+        robot's segments where its joints put them and the keypoints the frame shows that neither the background nor
+        the robot explains (the object), and the contact distance: the `distance_quantile` of the contact frames'
+        distances plus `distance_margin` px."""
+        lattice = np.stack(np.meshgrid(*[np.linspace(lo, hi, 15) for lo, hi in self.joint_limits],
+                                       indexing='ij'), -1).reshape(-1, 2)
+        self.rigid_pairs_ = rigid_pairs(self._robot_points(lattice), self.rigid_tolerance)
+        self.background_spots_ = background_spots([k.positions for k in keypoints], self.background_share)
+        self.__dict__.pop('_background_tree', None)
+        self.train_distance_ = np.array([self.object_distance(k, q[None])[0] for k, q in zip(keypoints, joints)])
+        known = contact & np.isfinite(self.train_distance_)
+        self.contact_distance_ = (float(np.quantile(self.train_distance_[known], self.distance_quantile))
+                                  + self.distance_margin) if known.any() else float('nan')
+
+    def object_points(self, frame: FrameKeypoints, joints: np.ndarray) -> np.ndarray:
+        """(M, 2) keypoints of `frame` that neither the background (within 2 px of a background spot) nor the robot
+        standing at `joints` (within robot_margin px of its segments) explains: what else is in view."""
+        pts = np.asarray(frame.positions, dtype=float).reshape(-1, 2)
+        if not len(pts):
+            return pts
+        if len(self.background_spots_):
+            if not hasattr(self, '_background_tree'):
+                self._background_tree = cKDTree(self.background_spots_)
+            pts = pts[self._background_tree.query(pts, distance_upper_bound=2.0)[0] == np.inf]
+        if len(pts) and len(self.rigid_pairs_):
+            own = np.repeat(self._robot_points(np.asarray(joints, dtype=float).reshape(1, 2)), len(pts), axis=0)
+            pts = pts[segment_distances(own, self.rigid_pairs_, pts[:, None, :]) > self.robot_margin]
+        return pts
+
+    def object_distance(self, frame: FrameKeypoints, joints: np.ndarray, at=None) -> np.ndarray:
+        """(n,) image distance [px] between the robot's segments with the arm at `at` (n, 2; default: at `joints`)
+        and the object points of `frame` taken with the arm at `joints` (inf: none)."""
+        objects = object_centres(self.object_points(frame, joints), self.cluster_radius)
+        at = np.asarray(joints if at is None else at, dtype=float).reshape(-1, 2)
+        if not len(objects) or not len(self.rigid_pairs_):
+            return np.full(len(at), np.inf)
+        return segment_distances(self._robot_points(at), self.rigid_pairs_,
+                                 np.repeat(objects[None], len(at), axis=0))
+
+    def _robot_points(self, joints: np.ndarray) -> np.ndarray:
+        """(n, S, 2) image positions of the robot's own labels where the joint regression puts them."""
+        return np.einsum('nf,lfc->nlc', joint_features(joints), self.joint_coef_[self.self_labels_])
 
     def _embedding_params(self, method: str) -> Dict:
         return dict(lle_method=self.lle_method) if method == 'lle' else {}
@@ -419,40 +549,56 @@ class ArmStateLearner:
         b = np.linspace(self.joint_limits[1, 0], self.joint_limits[1, 1], cols * s + 1)
         return np.stack(np.meshgrid(a, b, indexing='ij'), -1)
 
-    def predict_frames(self, frame: FrameKeypoints, joints: np.ndarray,
-                       recent: Sequence[FrameKeypoints] = ()) -> Dict[str, np.ndarray]:
+    def predict_frames(self, frame: FrameKeypoints, joints: np.ndarray, recent: Sequence[FrameKeypoints] = (),
+                       method: Optional[str] = None, frame_joints=None) -> Dict[str, np.ndarray]:
         """Predicted states of the frames the camera would see with the arm at `joints` (n, 2) and everything else
         as in `frame` (hidden labels from `recent`, oldest first): the robot's labels where the joint regression
-        puts them. Returns dict(vectors (n, d) imputed, embedding (n, k), closeness (n,), collision (n,) - closeness
-        at least map_threshold - and external_seen (labels of the object side known))."""
+        puts them. `method` (default map_method): 'embedding' embeds the predicted vectors and applies the contact
+        region (closeness >= map_threshold is contact); 'keypoint_distance' measures the image distance between the
+        robot's predicted rigid segments and the keypoints of `frame` that neither the background nor the robot at
+        `frame_joints` (its joint reading in that frame; required) explains (closeness 1 - distance / contact
+        distance, >= 0 is contact). Returns dict(closeness (n,), collision (n,), distance (n,) px or None,
+        embedding (n, k) or None, external_seen (labels of the object side known), object_points (keypoints taken
+        as the object; -1 for 'embedding'))."""
         if not hasattr(self, 'region_'):
             raise RuntimeError('ArmStateLearner is not fitted')
+        method = method or self.map_method
+        if method not in MAP_METHODS:
+            raise ValueError(f'method must be one of {MAP_METHODS}')
         q = np.asarray(joints, dtype=float).reshape(-1, 2)
         if not np.all(np.isfinite(q)):
             raise ValueError('joints must be finite')
         raw = self.vectorizer_.vectorize(frame)
         filled = self._fill_from_recent(raw, [self.vectorizer_.vectorize(r) for r in recent]).reshape(-1, 2)
+        seen = int(np.isfinite(filled[self.external_labels_, 0]).sum())
+        if method == 'keypoint_distance' and np.isfinite(self.contact_distance_):
+            if frame_joints is None:
+                raise ValueError("the 'keypoint_distance' map needs the joint reading of the frame")
+            d = self.object_distance(frame, frame_joints, at=q)
+            close = np.maximum(1.0 - d / max(self.contact_distance_, 1e-6), -1e6)
+            return dict(closeness=close, collision=close >= 0.0, distance=d, embedding=None, external_seen=seen,
+                        object_points=len(self.object_points(frame, frame_joints)))
         P = np.repeat(filled[None], len(q), axis=0)
-        own = self.self_labels_
-        P[:, own] = np.einsum('nf,lfc->nlc', joint_features(q), self.joint_coef_[own])
-        X = self.imputer_.transform(self._vectors_of_positions(P))
-        Y = self.lle_transform(X)
+        P[:, self.self_labels_] = self._robot_points(q)
+        Y = self.lle_transform(self.imputer_.transform(self._vectors_of_positions(P)))
         close = self.region_.closeness(Y)
-        return dict(vectors=X, embedding=Y, closeness=close, collision=close >= self.map_threshold,
-                    external_seen=int(np.isfinite(filled[self.external_labels_, 0]).sum()))
+        return dict(closeness=close, collision=close >= self.map_threshold, distance=None, embedding=Y,
+                    external_seen=seen, object_points=-1)
 
-    def predict_collision_map(self, frame: FrameKeypoints, recent: Sequence[FrameKeypoints] = ()
-                              ) -> Dict[str, object]:
+    def predict_collision_map(self, frame: FrameKeypoints, recent: Sequence[FrameKeypoints] = (),
+                              method: Optional[str] = None, frame_joints=None) -> Dict[str, object]:
         """Collision map for the object placement seen in `frame` before moving (module docstring): dict(
         collision (rows, cols) bool, closeness (rows, cols) float (largest over the cell's cross of lattice
         points), lattice_joints (R, C, 2), lattice_closeness (R, C), external_labels (learned count),
         external_seen (of them known in frame + recent), new_frames (1 + len(recent)))."""
         lattice = self.map_lattice()
-        pred = self.predict_frames(frame, lattice.reshape(-1, 2), recent)
+        pred = self.predict_frames(frame, lattice.reshape(-1, 2), recent, method, frame_joints)
         close = pred['closeness'].reshape(lattice.shape[:2])
-        collision, closeness = cross_max(close >= self.map_threshold, close, self.grid_shape, self.map_resolution)
+        hit = pred['collision'].reshape(lattice.shape[:2])
+        collision, closeness = cross_max(hit, close, self.grid_shape, self.map_resolution)
         return dict(collision=collision, closeness=closeness, lattice_joints=lattice, lattice_closeness=close,
                     external_labels=int(len(self.external_labels_)), external_seen=pred['external_seen'],
+                    object_points=pred['object_points'],
                     new_frames=1 + len(recent))
 
     # --- persistence (np.savez + JSON, no pickle) ---------------------------------------------------------
@@ -481,6 +627,8 @@ class ArmStateLearner:
             train_vectors=self.train_vectors_, train_joints=self.train_joints_, train_contact=self.train_contact_,
             train_stamps=self.train_stamps_, label_roles=self.label_roles_, joint_coef=self.joint_coef_,
             label_r2=self.label_r2_, label_motion=self.label_motion_, label_mean=self.label_mean_,
+            rigid_pairs=self.rigid_pairs_, train_distance=self.train_distance_, background_spots=self.background_spots_,
+            contact_distance=np.array(self.contact_distance_),
             imputer_vectors=np.where(self.imputer_.observed_, self.imputer_.values_, np.nan))
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
@@ -535,6 +683,12 @@ class ArmStateLearner:
         self.label_motion_, self.label_mean_ = a['label_motion'], a['label_mean']
         if not (len(self.label_roles_) == len(self.joint_coef_) == len(self.label_mean_) == vec.n_labels_):
             raise ModelFileError('label arrays do not match the number of labels')
+        self.rigid_pairs_ = a['rigid_pairs'].astype(int).reshape(-1, 2)
+        self.train_distance_, self.contact_distance_ = a['train_distance'], float(a['contact_distance'])
+        self.background_spots_ = a['background_spots'].astype(float).reshape(-1, 2)
+        if self.rigid_pairs_.size and not 0 <= self.rigid_pairs_.min() <= self.rigid_pairs_.max() < len(
+                self.self_labels_):
+            raise ModelFileError('rigid pairs name labels the robot does not have')
         self.imputer_ = NearestImputer(vec.n_impute_neighbors).fit(a['imputer_vectors'])
         X = a['train_vectors']
         if self.imputer_.values_.shape[1] != X.shape[1]:

@@ -4,8 +4,9 @@ builds the collision map the planner needs for the object where the current fram
     ./mm run mm_manifold image_embedding --ros-args -p use_sim_time:=true -p min_training_frames:=500
 
 Subscribes only to what the robot senses: `arm/camera/image_raw` (sensor_msgs/Image rgb8/bgr8/mono8),
-`arm/joint_states` and `arm/contact` (mm_msgs/Contact, the touch sensor on the hand, stamped with its frame: its
-reading in the frame's pose is the frame's "contact" label), plus `arm/embedding/map_request` (std_msgs/Header from
+`arm/joint_states` and `arm/contact` (mm_msgs/Contact, stamped with its frame: the contact sensed in the frame's pose
+is the frame's "contact" label; `contact_label` 'arm' (default) takes the contact of any arm part, which a real arm
+senses from its joint torques, 'hand' the hand's touch sensor alone), plus `arm/embedding/map_request` (std_msgs/Header from
 the planner: the stamp of the frame a map is needed of). Never ground truth.
 
 Every image: SIFT keypoints (mm_manifold.keypoints). A frame whose joint state and touch reading of the same stamp
@@ -141,7 +142,25 @@ class ImageEmbeddingNode(Node):
                                   read_only=True),
                           declare(self, 'joint1_limits', [0.0, 2.2], 'shoulder_pitch [min, max] rad',
                                   read_only=True)),
+            map_method=declare(self, 'map_method', 'keypoint_distance', "Collision map of a new placement: "
+                               "'keypoint_distance' (robot's predicted keypoints against the unexplained ones seen "
+                               "now, contact distance from the touch labels) or 'embedding' (the predicted frame "
+                               "embedded, the contact region applied; the paper's route)", read_only=True,
+                               additional_constraints='one of keypoint_distance, embedding'),
+            robot_margin=declare(self, 'robot_margin', 14.0, 'px: keypoints this close to the robot\'s segments '
+                                 'are the robot\'s own (keypoint_distance)', min_value=0.0, max_value=99.0,
+                                 read_only=True),
+            cluster_radius=declare(self, 'cluster_radius', 30.0, 'px: unexplained keypoints chained this close '
+                                   'count as one object at their centroid (0: each keypoint)', min_value=0.0,
+                                   max_value=199.0, read_only=True),
+            distance_margin=declare(self, 'distance_margin', 0.0, 'px added to the learned contact distance '
+                                    '(keypoint_distance)', min_value=-99.0, max_value=99.0, read_only=True),
         )
+        self.contact_label = declare(self, 'contact_label', 'arm', "Which contact sense labels the frames: 'arm' "
+                                     "(any arm part, from joint torques) or 'hand' (the hand's touch sensor, the "
+                                     "paper's)", read_only=True, additional_constraints='one of arm, hand')
+        if self.contact_label not in ('arm', 'hand'):
+            raise ValueError("contact_label must be 'arm' or 'hand'")
         if image_qos not in ('reliable', 'sensor_data'):
             raise ValueError("image_qos must be 'reliable' or 'sensor_data'")
         if self.min_training_frames > self.max_training_frames:
@@ -156,6 +175,7 @@ class ImageEmbeddingNode(Node):
         self.frames: Dict[str, list] = {'kp': [], 'joints': [], 'contact': [], 'stamp': []}
         self.pending: Dict[int, dict] = {}
         self.recent = collections.OrderedDict()     # stamp -> keypoints of the newest frames
+        self.recent_joints: Dict[int, np.ndarray] = {}      # stamp -> joint reading of the newest frames
         self.known_stamps = set()
         self.map_request: Optional[int] = None
         self.maps_published = 0
@@ -250,16 +270,23 @@ class ImageEmbeddingNode(Node):
             reject_input(self, 'arm/joint_states', f'need 2 finite positions, got {list(msg.position)}')
             return
         stamp = stamp_ns(msg.header)
+        self.recent_joints[stamp] = np.asarray(msg.position, dtype=float)
+        if len(self.recent_joints) > 2 * RECENT_FRAMES:
+            for old in sorted(self.recent_joints)[:len(self.recent_joints) - 2 * RECENT_FRAMES]:
+                del self.recent_joints[old]
+        self._serve_map_request()
         entry = self._entry(stamp)
         if entry is not None:
-            entry['joints'] = np.asarray(msg.position, dtype=float)
+            entry['joints'] = self.recent_joints[stamp]
             self._complete(stamp)
 
     def _on_contact(self, msg: Contact) -> None:
         stamp = stamp_ns(msg.header)
         entry = self._entry(stamp)
         if entry is not None:
-            entry['contact'] = bool(msg.in_contact_at_frame)      # the label of what the image shows
+            # the label of what the image shows: contact in the frame's own pose
+            entry['contact'] = bool(msg.arm_in_contact_at_frame if self.contact_label == 'arm'
+                                    else msg.in_contact_at_frame)
             self._complete(stamp)
 
     def _on_map_request(self, msg: Header) -> None:
@@ -323,18 +350,22 @@ class ImageEmbeddingNode(Node):
         """Build the requested map once the model and a frame at or after the requested stamp are there."""
         if self.map_request is None or self.model is None:
             return
-        later = [s for s in self.recent if s >= self.map_request]
+        later = [s for s in self.recent if s >= self.map_request and self._mappable(s)]
         if not later:
             return
         self.map_request = None
         self._publish_map(min(later))
+
+    def _mappable(self, stamp: int) -> bool:
+        """The keypoint-distance map also needs the frame's joint reading (where the robot stands in the image)."""
+        return self.model.map_method != 'keypoint_distance' or stamp in self.recent_joints
 
     def _publish_map(self, stamp: int) -> None:
         stamps = list(self.recent)
         i = stamps.index(stamp)
         recent = [self.recent[s] for s in stamps[max(0, i - self.map_recent_frames):i]]
         try:
-            pred = self.model.predict_collision_map(self.recent[stamp], recent)
+            pred = self.model.predict_collision_map(self.recent[stamp], recent, frame_joints=self.recent_joints.get(stamp))
             collision = np.asarray(pred['collision'], dtype=bool)
             closeness = np.asarray(pred['closeness'], dtype=float)
             if collision.shape != self.model.grid_shape or closeness.shape != collision.shape:
@@ -354,7 +385,7 @@ class ImageEmbeddingNode(Node):
         self.maps_published += 1
         self.get_logger().info(f'collision map {self.maps_published} of frame {stamp * 1e-9:.3f} s from '
                                f'{1 + len(recent)} frame(s) of the current scene: {int(collision.sum())} '
-                               'collision cells')
+                               f"collision cells ({self.model.map_method}, {pred['object_points']} object points)")
 
     # --- learning ---------------------------------------------------------------------------------------------
     @property
@@ -425,8 +456,9 @@ class ImageEmbeddingNode(Node):
             f'fit {self.fits_done}: {learner.n_frames_} frames, {learner.vectorizer_.n_labels_} labels, '
             f"{int(learner.train_contact_.sum())} contact frames, contact region {v['model']} "
             f"(cross-validated TPR {v['cv_tpr']:.3f} FPR {v['cv_fpr']:.3f})")
-        if self.recent:
-            self._publish_map(next(reversed(self.recent)))       # the newest frame: the scene as it is now
+        mappable = [s for s in self.recent if self._mappable(s)]
+        if mappable:
+            self._publish_map(mappable[-1])       # the newest frame: the scene as it is now
         self._serve_map_request()
         self._maybe_fit()
 

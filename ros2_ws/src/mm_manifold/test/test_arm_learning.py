@@ -96,9 +96,11 @@ def test_save_load_round_trip_and_corrupt_files(fitted, tmp_path):
     for name in ('label_roles_', 'joint_coef_', 'label_mean_'):
         np.testing.assert_array_equal(getattr(loaded, name), getattr(learner, name))
     assert loaded.get_params() == learner.get_params()
-    m1, m2 = learner.predict_collision_map(new_kps[0]), loaded.predict_collision_map(new_kps[0])
-    np.testing.assert_array_equal(m1['collision'], m2['collision'])
-    np.testing.assert_allclose(m1['closeness'], m2['closeness'], atol=1e-9)
+    for method in ('embedding', 'keypoint_distance'):
+        m1, m2 = (m.predict_collision_map(new_kps[0], method=method, frame_joints=[-2.0, 1.0])
+                  for m in (learner, loaded))
+        np.testing.assert_array_equal(m1['collision'], m2['collision'])
+        np.testing.assert_allclose(m1['closeness'], m2['closeness'], atol=1e-9)
     data = path.read_bytes()
     (tmp_path / 'truncated.npz').write_bytes(data[:len(data) // 2])
     (tmp_path / 'garbage.npz').write_bytes(b'not a model')
@@ -203,7 +205,7 @@ def test_predict_collision_map_for_an_unseen_placement(moving):
     for _ in range(3):
         model.set_object_position(model.random_object_position(rng))
         far = max(model.sample_joints(50, rng), key=model.hand_object_distance)
-        out = learner.predict_collision_map(ext(model.render(far)))
+        out = learner.predict_collision_map(ext(model.render(far)), method='embedding')
         assert out['collision'].shape == out['closeness'].shape == (8, 12) and out['new_frames'] == 1
         assert np.all(np.isfinite(out['closeness']))
         lattice = out['lattice_joints']
@@ -216,5 +218,31 @@ def test_predict_collision_map_for_an_unseen_placement(moving):
     assert np.mean(accuracy) > 0.8, accuracy
     # the same call with recent frames, and the per-frame state with them
     frame = ext(model.render(model.sample_joints(1, rng)[0]))
-    assert learner.predict_collision_map(frame, recent=[frame])['new_frames'] == 2
+    assert learner.predict_collision_map(frame, recent=[frame], method='embedding')['new_frames'] == 2
     assert np.isfinite(learner.transform(frame, recent=[frame])['closeness'])
+
+
+def test_keypoint_distance_map_sees_the_object_where_the_frame_shows_it(moving):
+    """The keypoint-distance route: keypoints neither the background nor the robot explains are the object; the
+    robot's predicted segments come close to them exactly where the arm is near the object."""
+    model, learner = moving
+    assert np.isfinite(learner.contact_distance_) and len(learner.rigid_pairs_) > len(learner.self_labels_)
+    ext = KeypointExtractor()
+    rng = np.random.default_rng(98)
+    for _ in range(3):
+        model.set_object_position(model.random_object_position(rng))
+        far = max(model.sample_joints(50, rng), key=model.hand_object_distance)
+        frame = ext(model.render(far))
+        objects = learner.object_points(frame, far)
+        assert len(objects) >= 2
+        # most unexplained keypoints lie on the object (its radius is 20 px)
+        assert np.median(np.linalg.norm(objects - model.object_position_, axis=1)) < model.object_radius + 5
+        out = learner.predict_collision_map(frame, method='keypoint_distance', frame_joints=far)
+        assert out['object_points'] == len(objects) and out['collision'].shape == (8, 12)
+        lattice = out['lattice_joints'].reshape(-1, 2)
+        gap = model.part_clearances(lattice).min(axis=1).reshape(out['lattice_closeness'].shape)
+        close = out['lattice_closeness']
+        assert np.all(close[gap < 0.0] >= 0.0)                     # every lattice point in contact is predicted
+        assert np.median(close[gap > 60]) < np.median(close[gap < 0.0])
+    with pytest.raises(ValueError, match='joint reading'):
+        learner.predict_collision_map(frame, method='keypoint_distance')

@@ -69,14 +69,17 @@ def test_learns_online_latches_the_map_saves_and_reloads(tmp_path):
     joints = sample_exploration_joints(model, N_FRAMES, rng=np.random.default_rng(1))
     ros = RosHarness()
     try:
+        # the object stays put here, so it is background to the keypoint-distance map: the paper's route maps it
         node, pubs, seen = make_rig(ros, {'min_training_frames': N_FRAMES, 'refit_every': 0,
-                                          'model_path': str(model_path)})
+                                          'model_path': str(model_path), 'map_method': 'embedding'})
         for k, q in enumerate(joints):
             pubs['image'].publish(image_msg(model.render(q), k))
             js = JointState(name=['shoulder_roll', 'shoulder_pitch'], position=[float(v) for v in q])
             js.header.stamp.sec = k
             pubs['joints'].publish(js)
-            touch = Contact(in_contact=model.in_contact(q), in_contact_at_frame=model.in_contact(q))
+            arm = bool(model.part_clearances(q).min() < 0.0)      # the whole-arm sense (the default label)
+            touch = Contact(in_contact=model.in_contact(q), in_contact_at_frame=model.in_contact(q),
+                            arm_in_contact=arm, arm_in_contact_at_frame=arm)
             touch.header.stamp.sec = k
             pubs['contact'].publish(touch)
             assert ros.spin_until(lambda: len(seen['state']) == k + 1, timeout=10)
@@ -84,7 +87,7 @@ def test_learns_online_latches_the_map_saves_and_reloads(tmp_path):
         assert seen['map'][-1].header.stamp.sec == N_FRAMES - 1          # a map of the newest frame
         assert node.n_frames == N_FRAMES
         np.testing.assert_array_equal(np.array(node.model.train_contact_),
-                                      [model.in_contact(q) for q in joints])       # labels paired correctly
+                                      [model.part_clearances(q).min() < 0.0 for q in joints])   # paired correctly
         m = seen['map'][-1]
         assert (m.rows, m.cols) == (8, 12) and len(m.collision) == 96 and 0 < sum(m.collision) < 96
         assert model_path.is_file()

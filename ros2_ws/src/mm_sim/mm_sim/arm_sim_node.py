@@ -8,7 +8,8 @@ Publishes, per simulation step and in this order, all with the stamp of that ste
   /clock, `arm/camera/image_raw` (sensor_msgs/Image rgb8, 400x400), `arm/joint_states` (shoulder_roll,
   shoulder_pitch: position [rad], velocity [rad/s]), `arm/contact` (mm_msgs/Contact: the hand's touch sensor - the hand
   touched the object anywhere along the motion from the previous frame, checked on sub-steps of at most
-  `contact_resolution` rad, and whether it touches it in the frame's pose), and for evaluation only
+  `contact_resolution` rad, and whether it touches it in the frame's pose - and the same for any arm part, the
+  contact a real arm senses from its joint torques), and for evaluation only
   `arm/ground_truth/state` (mm_msgs/ArmGroundTruth: object place, hand-object distance, contact of any part - upper
   link, forearm, hand - along the motion, the smallest distance and clearance along it, running contact counts since
   the last placement) and `arm/ground_truth/object_pose` (geometry_msgs/PoseStamped, image pixels, frame `camera`).
@@ -338,7 +339,8 @@ class ArmSim(Node):
         joints = JointState(name=list(JOINT_NAMES), position=[float(v) for v in self.joints],
                             velocity=[float(v) for v in self.velocity])
         joints.header.stamp = stamp
-        contact = Contact(in_contact=s.hand_contact, in_contact_at_frame=bool(gaps[2] < 0.0))
+        contact = Contact(in_contact=s.hand_contact, in_contact_at_frame=bool(gaps[2] < 0.0),
+                          arm_in_contact=s.any_contact, arm_in_contact_at_frame=bool(gaps.min() < 0.0))
         contact.header.stamp = stamp
         pose = PoseStamped()
         pose.header.stamp, pose.header.frame_id = stamp, self.frame_id

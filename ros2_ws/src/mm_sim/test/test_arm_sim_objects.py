@@ -186,6 +186,7 @@ def test_contact_of_a_link_along_a_fast_motion_that_the_end_poses_miss():
         assert truth.contact_steps == 1 and truth.contact_events == 1
         assert touch.in_contact == truth.hand_contact == ('hand' in truth.contact_parts)
         assert not touch.in_contact_at_frame
+        assert touch.arm_in_contact and not touch.arm_in_contact_at_frame      # the forearm felt it on the way
         assert truth.min_hand_object_distance < truth.hand_object_distance
         rig.command(end + [0.1, 0.0])             # clear of the object: counts stay, no new event
         truth = rig.latest('truth')
@@ -194,6 +195,7 @@ def test_contact_of_a_link_along_a_fast_motion_that_the_end_poses_miss():
         assert rig.latest('truth').contact_steps == 2 and rig.latest('truth').contact_events == 2
         rig.command(model.inverse_kinematics(obstacle))     # the hand ends on the object
         assert rig.latest('contact').in_contact and rig.latest('contact').in_contact_at_frame
+        assert rig.latest('contact').arm_in_contact_at_frame
     finally:
         rig.close()
 

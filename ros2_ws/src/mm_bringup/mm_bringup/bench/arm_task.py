@@ -10,17 +10,18 @@ Parts:
   ellipsoid and quadric), `raw_sphere_*` / `raw_knn_*` (no embedding), each with tp / fn / fp / tn / tpr / fpr, and
   the class balance (`eval_*_contact`). The learner's settings (representation, LLE method, dimensions) come from
   mm_bringup.tune_arm, run on scenes and seeds disjoint from these.
-- Planning before moving (`plan_*`): the learner fitted for the tables is KEPT; for each of PLACEMENTS new object
-  placements (generator PLACEMENT_SEED) with the object in the way of the straight move between a start and a goal
-  cell (chosen on the ground-truth map, which also must hold a contact-free path), the robot standing at the start
-  takes ONE frame and builds the collision map with ArmStateLearner.predict_collision_map. The map is scored per
-  cell against the ground truth (a cell is blocked when any arm part touches the object at the cell centre or on
-  the moves to the neighbours' centres; also against the hand alone, which is what the touch sensor teaches), and
-  the DP plan (mm_planner.value_iteration, the paper's rewards, and dp_planner's default clearance reward) is
-  executed cell by cell; success = the goal cell centre is reached and no arm part touches the object anywhere
-  along the executed motion (checked every 0.02 rad). The same is measured (`plan_any_part_*`) for a learner
-  fitted on the same exploration frames labelled by a touch sensor covering the whole arm (what arm_sim would need
-  to publish for the robot to learn where its links hit the object).
+- Planning before moving (`plan_*`): a learner fitted on the same exploration frames labelled by the whole-arm
+  contact sense (arm/contact's arm_in_contact_at_frame, image_embedding's default label) is KEPT; for each of
+  PLACEMENTS new object placements (generator PLACEMENT_SEED) with the object in the way of the straight move
+  between a start and a goal cell (chosen on the ground-truth map, which also must hold a contact-free path), the
+  robot standing at the start takes ONE frame and builds the collision map with ArmStateLearner.predict_collision_map
+  (default route: keypoint distance, chosen by mm_bringup.tune_arm_map). The map is scored per cell against the
+  ground truth (a cell is blocked when any arm part touches the object at the cell centre or on the moves to the
+  neighbours' centres; also against the hand alone), and the DP plan (mm_planner.value_iteration, the paper's
+  rewards, and dp_planner's default clearance reward) is executed cell by cell; success = the goal cell centre is
+  reached and no arm part touches the object anywhere along the executed motion (checked every 0.02 rad). The same
+  is measured with the paper's route (`plan_embedding_*`: the predicted frame embedded, the contact region applied)
+  and for the tables' learner, which learned from the hand's touch sensor alone (`plan_hand_touch_*`).
 - Synthetic check (Section 3.4): 1000 frames, 10 object + 10 hand + 5 background keypoints, object and hand both
   uniform, 10 % removed; best |Spearman| of one LLE / PCA axis with the hand-object distance.
 """
@@ -138,7 +139,8 @@ def _cells(pred: np.ndarray, truth: np.ndarray) -> Dict[str, int]:
 
 
 def plan_before_moving(learner, model, n_placements: int = PLACEMENTS, seed: int = PLACEMENT_SEED,
-                       extractor: Optional[KeypointExtractor] = None, log=print) -> Dict[str, object]:
+                       extractor: Optional[KeypointExtractor] = None, log=print,
+                       method: Optional[str] = None) -> Dict[str, object]:
     """Held-out placements with a kept model (module docstring). `model` is the scene the learner explored."""
     extractor = extractor or KeypointExtractor()
     rng = np.random.default_rng(seed)
@@ -156,10 +158,10 @@ def plan_before_moving(learner, model, n_placements: int = PLACEMENTS, seed: int
             continue
         frame = extractor(model.render(grid.centre(task[0])))
         t0 = time.perf_counter()
-        pred = learner.predict_collision_map(frame)
+        pred = learner.predict_collision_map(frame, method=method, frame_joints=grid.centre(task[0]))
         map_ms.append(1e3 * (time.perf_counter() - t0))
         row = dict(object=[float(v) for v in model.object_position_], start=list(task[0]), goal=list(task[1]),
-                   new_frames=pred['new_frames'], external_seen=pred['external_seen'],
+                   new_frames=pred['new_frames'], external_seen=pred['external_seen'], object_points=pred['object_points'],
                    predicted_blocked=int(pred['collision'].sum()), truth_blocked=int(truth_any.sum()))
         for key, truth in (('any', truth_any), ('hand', truth_hand)):
             cells = _cells(pred['collision'], truth)
@@ -242,10 +244,13 @@ def run(output_dir: Path, quick: bool) -> dict:
     learner = ev['_learner']
     out['learner_fit_s'] = ev['learner_fit_s']
     n_plan = 8 if quick else PLACEMENTS
-    out.update(plan_before_moving(learner, ev['_model'], n_plan, extractor=extractor))
     whole_arm = ArmStateLearner(**LEARNER_PARAMS).fit(ev['_kps_train'], ev['_train']['joints'],
                                                        ev['_train']['any_contact'])
-    out.update({k.replace('plan_', 'plan_any_part_', 1): v for k, v in
-                plan_before_moving(whole_arm, ev['_model'], n_plan, extractor=extractor).items()})
+    out['plan_contact_distance_px'] = whole_arm.contact_distance_
+    out.update(plan_before_moving(whole_arm, ev['_model'], n_plan, extractor=extractor))
+    for prefix, planner_learner, method in (('plan_embedding_', whole_arm, 'embedding'),
+                                            ('plan_hand_touch_', learner, None)):
+        out.update({k.replace('plan_', prefix, 1): v for k, v in plan_before_moving(
+            planner_learner, ev['_model'], n_plan, extractor=extractor, method=method).items()})
     out.update(synthetic_check())
     return out
