@@ -1,9 +1,14 @@
-"""Graph benchmark (results/bench.json): lockstep simulator rate and latency, recorder throughput for camera images,
-and, measured in the same run for comparison, plain rclpy ping-pong and image flow without recording."""
+"""Graph benchmark (results/bench.json): lockstep simulator rate and latency, the full wheeled graph's rate
+(wheeled_sim + sensor_manifold + switching_controller exploring in lockstep) as a ratio of the bare lockstep rate of
+the same run, the cost of a fit per 10 000 samples and of a wall episode, recorder throughput for camera images, and,
+measured in the same run for comparison, plain rclpy ping-pong and image flow without recording. The machine's load
+(load average before and after, cpu count) and the versions and commit are recorded beside the figures."""
 from __future__ import annotations
 
 import math
+import os
 import shutil
+import subprocess
 import time
 from pathlib import Path
 
@@ -15,6 +20,9 @@ from sensor_msgs.msg import Image, Range
 from std_msgs.msg import Float64MultiArray, Header
 
 from mm_bringup.process_graph import ProcessGraph, wait_for
+from mm_bringup.wall_experiment import PAPER_START, explore, run_episode, sensor2_goal_reading
+from mm_bringup.wall_graph import WallGraph
+from mm_sim.wheeled_model import WheeledRobot
 
 NAME = 'bench'
 QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
@@ -148,12 +156,90 @@ def recorder_images(count: int, rate_hz: float, work: Path) -> dict:
             'mb_per_s': recorded * size / span_s / 1e6 if recorded > 1 else 0.0, 'publish_rate_hz': rate_hz}
 
 
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process so far (Linux /proc)."""
+    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+
+
+def wheeled_graph(steps: int, work: Path) -> dict:
+    """The full wheeled loop (three processes) exploring `steps` steps with the learner's and the explorer's work
+    included; the rate is taken between the 100th and the last exploration sample (start-up excluded), with the CPU
+    each process spent per step over that stretch (where the time goes). Then one paper-task episode when the model
+    can map the goal (seconds per wall episode through the graph, reset included)."""
+    marks = {}
+    result = {'graph_steps': steps}
+    with WallGraph(work, exploration_steps=steps, model_path='') as wall:
+        processes = {n.label: n.process.pid for n in wall.nodes}
+        wall.spin_until(lambda: wall.samples >= 100, 120.0, '100 samples')
+        cpu_from = {k: _cpu_seconds(pid) for k, pid in processes.items()}
+        cpu_from['experimenter (this process)'] = time.process_time()
+        marks['from'] = (wall.samples, time.perf_counter())
+        wall.spin_until(lambda: wall.samples >= steps, 600.0, f'{steps} samples')
+        marks['to'] = (wall.samples, time.perf_counter())
+        cpu_to = {k: _cpu_seconds(pid) for k, pid in processes.items()}
+        cpu_to['experimenter (this process)'] = time.process_time()
+        wall.spin_until(lambda: wall.model_msg is not None, 600.0, 'the first model')
+        result['graph_fit_and_model_s'] = time.perf_counter() - marks['to'][1]
+        result['graph_model_ready'] = bool(wall.model_msg.ready)
+        if result['graph_model_ready']:
+            wall.wait_learned(timeout=60.0)
+            robot = WheeledRobot()
+            episode = wall.run_episode(PAPER_START, sensor2_goal_reading(robot, (0.0, 0.25, 0.0)), 0.005)
+            result.update(graph_episode_s=episode.wall_seconds, graph_episode_steps=len(episode.poses) - 1,
+                          graph_episode_reached=episode.reached)
+    (n0, t0), (n1, t1) = marks['from'], marks['to']
+    result['graph_steps_per_s'] = (n1 - n0) / (t1 - t0)
+    result['graph_cpu_ms_per_step'] = {k: (cpu_to[k] - cpu_from[k]) * 1000 / (n1 - n0) for k in cpu_from}
+    return result
+
+
+def offline_costs(samples: int) -> dict:
+    """Fit of `samples` exploration samples (reported per 10 000) and one paper-task episode with the learned model
+    (the offline runner drives the same WallAgent and StateTracker the nodes do), on the exploration seed 0."""
+    from mm_manifold.sensor_manifold import SensorManifoldModel
+    robot = WheeledRobot()
+    log = explore(robot, samples, random_state=0, dt=0.05)
+    start = time.perf_counter()
+    model = SensorManifoldModel(0.05).fit(log.readings, log.commands, log.continuous)
+    fit_s = time.perf_counter() - start
+    result = {'fit_s_per_10k_samples': fit_s * 10000 / samples, 'fit_samples': samples, 'fit_model_ready': model.ready}
+    if model.ready:
+        start = time.perf_counter()
+        episode = run_episode(robot, model, PAPER_START, sensor2_goal_reading(robot, (0.0, 0.25, 0.0)), 0.005)
+        result.update(offline_episode_s=time.perf_counter() - start, offline_episode_steps=len(episode.commands),
+                      offline_episode_reached=episode.reached)
+    return result
+
+
+def machine_load() -> dict:
+    """What else the machine did: load averages, and the versions and commit the figures belong to."""
+    import rclpy
+    try:
+        commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True, text=True,
+                                cwd=Path(__file__).resolve().parent, timeout=10).stdout.strip()
+        dirty = subprocess.run(['git', 'status', '--porcelain', '--untracked-files=no'], capture_output=True,
+                               text=True, cwd=Path(__file__).resolve().parent, timeout=10).stdout.strip() != ''
+    except (OSError, subprocess.SubprocessError):
+        commit, dirty = '', False
+    try:
+        from importlib.metadata import version
+        rclpy_version = version('rclpy')
+    except Exception:                 # rclpy from a ROS install has no distribution metadata
+        rclpy_version = getattr(rclpy, '__version__', 'unknown')
+    return {'git_commit': commit, 'git_dirty': dirty, 'rclpy_version': rclpy_version}
+
+
 def run(output_dir: Path, quick: bool) -> dict:
     work = output_dir / 'tmp' / 'graph_bench'
     work.mkdir(parents=True, exist_ok=True)
     steps = 500 if quick else 3000
-    result = {}
+    result = {'load_average_before': list(os.getloadavg()), 'cpu_count': os.cpu_count()}
+    result.update(machine_load())
     result.update(lockstep_loop(steps, work / 'logs'))
+    result.update(wheeled_graph(1000 if quick else 5000, work / 'wheeled'))
+    result['graph_over_lockstep'] = result['graph_steps_per_s'] / result['lockstep_steps_per_s']
+    result.update(offline_costs(2000 if quick else 10000))
     result.update(pingpong_reference(steps))
     result['lockstep_over_pingpong_latency'] = result['roundtrip_us_p50'] / result['pingpong_us_p50']
     n_images = 200 if quick else 1000
@@ -167,5 +253,6 @@ def run(output_dir: Path, quick: bool) -> dict:
     result['recorder_at_100hz_sent'] = camera_rate['sent']
     result['recorder_over_image_flow'] = (result['recorder_mb_per_s'] / result['image_flow_mb_per_s']
                                           if result['image_flow_mb_per_s'] else math.nan)
+    result['load_average_after'] = list(os.getloadavg())
     shutil.rmtree(work, ignore_errors=True)
     return result
