@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from mm_msgs.msg import ControllerStatus
 
 from mm_bringup.arm_demo import run_arm_demo
 from mm_bringup.bag_tool import format_info
@@ -73,6 +74,22 @@ def explore_with_progress(wall: WallGraph, steps: int, every_s: float = 2.0) -> 
     wall.spin_until(explored, 1800.0, 'the exploration')
 
 
+def learn_with_progress(wall: WallGraph, every_s: float = 5.0) -> None:
+    """Wait until the controller waits for a goal: a line whenever its phase changes (a model that is not ready sends
+    it exploring on, with the reason) and every `every_s` seconds."""
+    last = {'phase': None, 'at': time.monotonic()}
+
+    def learned() -> bool:
+        status, now = wall.status, time.monotonic()
+        if status is not None and (status.phase_name != last['phase'] or now - last['at'] >= every_s):
+            reason = f' ({status.detail})' if status.phase_name != last['phase'] and status.detail else ''
+            log(f'{status.phase_name.lower()}: {wall.samples} samples{reason}')
+            last.update(phase=status.phase_name, at=now)
+        return status is not None and status.phase == ControllerStatus.PHASE_WAITING_FOR_GOAL
+
+    wall.spin_until(learned, 1800.0, 'exploration and learning')
+
+
 def wall_experiment(graph: ProcessGraph, work: Path, exploration_steps: int, figures: Path, phases: Phases) -> dict:
     robot = WheeledRobot()
     began = time.monotonic()
@@ -82,7 +99,7 @@ def wall_experiment(graph: ProcessGraph, work: Path, exploration_steps: int, fig
         explore_with_progress(wall, exploration_steps)
         seconds = phases.done('exploring')
         log(f'explored {exploration_steps}/{exploration_steps} at {exploration_steps / seconds:.0f} steps/s; fitting')
-        wall.wait_learned(timeout=1800.0)
+        learn_with_progress(wall)
         learned_s = time.monotonic() - began
         log(f'fitting done in {phases.done("fitting")} s: learned from {wall.samples} samples')
         goal = sensor2_goal_reading(robot, PAPER_GOAL_POSE)
