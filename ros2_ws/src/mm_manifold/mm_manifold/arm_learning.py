@@ -37,9 +37,20 @@ the `recent_frames` frames before it.
 the keypoint vector the camera would see there - the robot's labels where the joint regression puts them, the
 others as seen in the current frame (hidden ones from the recent frames) - embeds it out of sample and applies the
 contact region. A cell is marked as collision when any lattice point at its centre or on the moves to its
-neighbours' centres is predicted in contact (closeness >= `map_threshold`; the union over the cross makes a low
+neighbours' centres - its half of them - is predicted in contact (closeness >= `map_threshold`; the union over the cross makes a low
 threshold block far too much). The robot only learns the contact its touch sensor reports: with a touch sensor on
-the hand alone (the paper's label) the map cannot know where the links would hit the object.
+the hand alone (the paper's label) the map cannot know where the links would hit the object; arm_sim's whole-arm
+contact sense (what a real arm feels through its joint torques) is the label image_embedding uses by default.
+
+`map_method='keypoint_distance'` is another route to the same map (mm_bringup.tune_arm_map / tune_arm_reach compare
+them): keypoints of the frame that neither the background (image spots where keypoints turn up in at least
+`background_share` of the exploration frames) nor the robot at its joint reading (within `robot_margin` px of its
+segments) explains are the object (grouped within `cluster_radius` px, each group at its centroid); the robot's
+segments - pairs of its labels that keep their distance (`rigid_tolerance`), i.e. lie on one rigid part - are
+predicted at each lattice joint vector, and a lattice point is contact when their image distance to the object is
+below the contact distance, a 1-D threshold learned from the exploration frames' touch labels (`distance_quantile`
+of the contact frames' distances, plus `distance_margin` px). An object that never moved during exploration is
+background to this route.
 """
 from __future__ import annotations
 
@@ -112,9 +123,11 @@ def cell_map(joints: np.ndarray, predicted: np.ndarray, closeness: np.ndarray, j
 
 
 def cross_max(hit: np.ndarray, value: np.ndarray, shape, resolution: int):
-    """Per grid cell, over the lattice points of its centre row and column reaching to the neighbours' centres
-    (where the arm goes when it stands in the cell or moves to a neighbour): any `hit` (bool) and the largest
-    `value`. The lattice has `resolution` points per cell side, edges included ((rows * res + 1, cols * res + 1))."""
+    """Per grid cell, over the lattice points of its centre row and column out to its borders (where the arm goes
+    while it is in the cell: standing at the centre, or on its half of a move to a neighbour's centre; the other
+    half belongs to the neighbour, so a move between two free cells is free): any `hit` (bool) and the largest
+    `value`. The lattice has `resolution` points per cell side, edges included ((rows * res + 1, cols * res + 1)).
+    (Reaching to the neighbours' centres instead grows every obstacle by a cell and cut the free paths.)"""
     rows, cols = shape
     s, h = int(resolution), int(resolution) // 2
     if hit.shape != (rows * s + 1, cols * s + 1) or value.shape != hit.shape:
@@ -124,8 +137,8 @@ def cross_max(hit: np.ndarray, value: np.ndarray, shape, resolution: int):
     for r in range(rows):
         for c in range(cols):
             i, j = r * s + h, c * s + h
-            i0, i1 = max(i - s, 0), min(i + s, rows * s)
-            j0, j1 = max(j - s, 0), min(j + s, cols * s)
+            i0, i1 = i - h, i + h
+            j0, j1 = j - h, j + h
             cross_hit = np.r_[hit[i, j0:j1 + 1], hit[i0:i1 + 1, j]]
             cross_val = np.r_[value[i, j0:j1 + 1], value[i0:i1 + 1, j]]
             out_hit[r, c] = cross_hit.any()
@@ -257,7 +270,7 @@ class ArmStateLearner:
                  vectorizer_params: Optional[Dict] = None, random_state: Optional[int] = 0, n_folds: int = 5,
                  representation: str = 'relative', self_r2: float = 0.9, external_r2: float = 0.3,
                  min_motion: float = 10.0, recent_frames: int = 5, map_resolution: int = 4,
-                 map_threshold: float = 0.5, map_method: str = 'keypoint_distance', rigid_tolerance: float = 2.0,
+                 map_threshold: float = 0.5, map_method: str = 'embedding', rigid_tolerance: float = 2.0,
                  distance_quantile: float = 1.0, distance_margin: float = 0.0, background_share: float = 0.05,
                  robot_margin: float = 14.0, cluster_radius: float = 30.0):
         lim = np.asarray(joint_limits, dtype=float)

@@ -15,13 +15,14 @@ Parts:
   PLACEMENTS new object placements (generator PLACEMENT_SEED) with the object in the way of the straight move
   between a start and a goal cell (chosen on the ground-truth map, which also must hold a contact-free path), the
   robot standing at the start takes ONE frame and builds the collision map with ArmStateLearner.predict_collision_map
-  (default route: keypoint distance, chosen by mm_bringup.tune_arm_map). The map is scored per cell against the
+  (default route: the paper's, the predicted frame embedded and the contact region applied). The map is scored per cell against the
   ground truth (a cell is blocked when any arm part touches the object at the cell centre or on the moves to the
   neighbours' centres; also against the hand alone), and the DP plan (mm_planner.value_iteration, the paper's
   rewards, and dp_planner's default clearance reward) is executed cell by cell; success = the goal cell centre is
   reached and no arm part touches the object anywhere along the executed motion (checked every 0.02 rad). The same
-  is measured with the paper's route (`plan_embedding_*`: the predicted frame embedded, the contact region applied)
-  and for the tables' learner, which learned from the hand's touch sensor alone (`plan_hand_touch_*`).
+  is measured with the keypoint-distance route (`plan_keypoint_distance_*`: the robot's predicted keypoints against
+  the keypoints of the frame that neither background nor robot explains) and for the tables' learner, which learned
+  from the hand's touch sensor alone (`plan_hand_touch_*`).
 - Synthetic check (Section 3.4): 1000 frames, 10 object + 10 hand + 5 background keypoints, object and hand both
   uniform, 10 % removed; best |Spearman| of one LLE / PCA axis with the hand-object distance.
 """
@@ -248,7 +249,7 @@ def run(output_dir: Path, quick: bool) -> dict:
                                                        ev['_train']['any_contact'])
     out['plan_contact_distance_px'] = whole_arm.contact_distance_
     out.update(plan_before_moving(whole_arm, ev['_model'], n_plan, extractor=extractor))
-    for prefix, planner_learner, method in (('plan_embedding_', whole_arm, 'embedding'),
+    for prefix, planner_learner, method in (('plan_keypoint_distance_', whole_arm, 'keypoint_distance'),
                                             ('plan_hand_touch_', learner, None)):
         out.update({k.replace('plan_', prefix, 1): v for k, v in plan_before_moving(
             planner_learner, ev['_model'], n_plan, extractor=extractor, method=method).items()})
