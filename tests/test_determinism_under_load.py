@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import numpy as np
+from mm_common.testing import RosHarness
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
 
@@ -14,19 +15,28 @@ from mm_bringup.wall_graph import WallGraph
 EXPLORATION = 600            # enough samples for a fit (learn_after), small enough for two runs in about a minute
 SEED = 3
 BURN_SECONDS = 150           # the burner ends by itself even if this test is killed
-QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+COMMANDS = '/wheeled/wheel_velocity_controller/commands'
+QOS = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)     # holds every command until drained
 
 
 def run_once(work):
     """Explore and learn until the first model arrives; returns (saved model arrays, exploration commands)."""
     model_file = work / 'wall_model.npz'
-    with WallGraph(work, exploration_steps=EXPLORATION, seed=SEED, model_path=model_file) as wall:
+    ros = RosHarness()
+    try:
+        # Subscribed before the loop starts: WallGraph starts the learner (which closes the loop) only once this
+        # node has subscribed to the controller's commands, so the first command is recorded too.
         commands = []
-        wall.node.create_subscription(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands',
-                                      lambda m: commands.append(tuple(m.data)), QOS)
-        # The learner saves before it publishes; the graph is stopped at the first model, before any refit.
-        wall.spin_until(lambda: wall.model_msg is not None, 240.0, 'the first model')
-        explored = commands[:EXPLORATION]
+        listener = ros.node('determinism_listener')
+        listener.create_subscription(Float64MultiArray, COMMANDS, lambda m: commands.append(tuple(m.data)), QOS)
+        with WallGraph(work, exploration_steps=EXPLORATION, seed=SEED, model_path=model_file,
+                       recorder='determinism_listener', recorded_topics=[COMMANDS]) as wall:
+            # The learner saves before it publishes; the graph is stopped at the first model, before any refit.
+            wall.spin_until(lambda: wall.model_msg is not None, 240.0, 'the first model')
+            assert ros.spin_until(lambda: len(commands) >= EXPLORATION, 30.0), f'{len(commands)} commands'
+            explored = commands[:EXPLORATION]
+    finally:
+        ros.close()
     with np.load(model_file) as data:
         arrays = {k: (data[k].dtype.str, data[k].shape, data[k].tobytes()) for k in data.files}
     return arrays, explored, wall.model_msg.samples
