@@ -20,7 +20,10 @@ def model_to_msg(model: SensorManifoldModel, sensor2_range: Sequence[float]) -> 
     virtual, field2, regions = model.virtual_, model.field2_, model.regions1_
     known = regions.known()
     msg = ModelMsg(format_version=ModelMsg.FORMAT_VERSION, dt=float(model.dt), samples=int(model.n_samples_),
-                   excursions=int(model.n_excursions_), dimension=int(model.dimension_), ready=bool(model.ready))
+                   excursions=int(model.n_excursions_), dimension=int(model.dimension_), ready=bool(model.ready),
+                   readiness=model.readiness() or '', heldout_sensor2_error=float(model.heldout_sensor2_error_),
+                   heldout_reentry_error=float(model.heldout_reentry_error_),
+                   heldout_limit=float(model.heldout_limit_), heldout_count=int(model.heldout_count_))
     msg.grid_rows, msg.grid_cols = int(model.grid_rows), int(model.grid_cols)
     msg.grid_nodes, msg.grid_mean = _flat(model.grid_.nodes_), _flat(model.grid_.mean_)
     msg.grid_axes, msg.grid_extent = _flat(model.grid_.axes_), _flat(model.grid_.extent_)

@@ -32,7 +32,7 @@ SENSOR2 = (3, 4)
 # The active spaces are the state message's constants (their one home).
 SPACE_NONE, SPACE_SENSOR1 = ManifoldState.SPACE_NONE, ManifoldState.SPACE_SENSOR1
 SPACE_VIRTUAL, SPACE_SENSOR2 = ManifoldState.SPACE_VIRTUAL_SENSOR1, ManifoldState.SPACE_SENSOR2
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 
 
 def group_in_range(readings: np.ndarray, group) -> np.ndarray:
@@ -63,13 +63,20 @@ def find_excursions(R: np.ndarray, U: np.ndarray, continuous: np.ndarray) -> Lis
 
 class SensorManifoldModel:
     """Hyperparameters: dt, grid shape, polynomial degree of the Jacobian fields, virtual-space prior weight,
-    route_travel_weight (VirtualSensorSpace.goal_route).
+    route_travel_weight (VirtualSensorSpace.goal_route), validation_folds and heldout_bound (the model is ready only
+    when the held-out sensor-2 error of VirtualSensorSpace.validate is at most heldout_bound x the span of the
+    sensor-2 readings explored; chosen by mm_bringup.tune_wall).
     Learned: dimension_, grid_, field1_ (grid coords), regions1_, field2_ (sensor-2 readings), sensor2_noise_ (std
-    of the sensor-2 reading noise, estimated from consecutive samples), virtual_, n_samples_, n_excursions_."""
+    of the sensor-2 reading noise, estimated from consecutive samples), virtual_, n_samples_, n_excursions_,
+    heldout_sensor2_error_ [m], heldout_reentry_error_ [grid units], heldout_count_, heldout_limit_ [m]."""
 
     def __init__(self, dt: float, grid_rows: int = 10, grid_cols: int = 10, jacobian_degree: int = 2,
-                 virtual_prior_weight: float = 1.0, route_travel_weight: float = 5e-3,
-                 random_state: Optional[int] = 0):
+                 virtual_prior_weight: float = 1.0, route_travel_weight: float = 5e-3, validation_folds: int = 3,
+                 heldout_bound: float = 0.5, random_state: Optional[int] = 0):
+        if validation_folds < 2 or not heldout_bound > 0:
+            raise ValueError('validation_folds >= 2 and heldout_bound > 0 are required')
+        self.validation_folds = validation_folds
+        self.heldout_bound = heldout_bound
         self.dt = dt
         self.grid_rows, self.grid_cols = grid_rows, grid_cols
         self.jacobian_degree = jacobian_degree
@@ -130,6 +137,12 @@ class SensorManifoldModel:
                                            route_travel_weight=self.route_travel_weight).fit(self.field1_, excursions)
         self.n_samples_ = int(len(R))
         self.n_excursions_ = int(self.virtual_.n_excursions_)
+        held = self.virtual_.validate(self.field1_, excursions, self.validation_folds, self.random_state)
+        self.heldout_sensor2_error_ = held['sensor2_error']
+        self.heldout_reentry_error_ = held['reentry_error']
+        self.heldout_count_ = int(held['held_out'])
+        span = self.sensor2_box_[1] - self.sensor2_box_[0]
+        self.heldout_limit_ = float(self.heldout_bound * np.max(span)) if np.all(np.isfinite(span)) else 0.0
         return self
 
     def _reading_noise(self, S: np.ndarray, U: np.ndarray, pair: np.ndarray) -> np.ndarray:
@@ -157,7 +170,16 @@ class SensorManifoldModel:
 
     @property
     def ready(self) -> bool:
-        return hasattr(self, 'virtual_') and self.field2_ is not None and len(self.virtual_.overlap_sensor2_) > 0
+        return self.readiness() is None
+
+    def readiness(self) -> Optional[str]:
+        """Why a sensor-2 goal cannot be trusted to this model yet (None: ready)."""
+        if not hasattr(self, 'virtual_') or self.field2_ is None or not len(self.virtual_.overlap_sensor2_):
+            return 'the excursions have not seen sensor 2'
+        if not self.heldout_sensor2_error_ <= self.heldout_limit_:
+            return (f'held-out sensor-2 error {self.heldout_sensor2_error_:.4f} m above the bound '
+                    f'{self.heldout_limit_:.4f} m ({self.heldout_count_} held-out readings)')
+        return None
 
     # --- persistence (no pickle) --------------------------------------------------------------------------------
     def save(self, path: os.PathLike) -> None:
@@ -185,7 +207,11 @@ class SensorManifoldModel:
                 'grid_residual': self.grid_.residual_, 'n_samples': self.n_samples_,
                 'n_excursions': self.n_excursions_,
                 'reentry_rms_before': self.virtual_.reentry_rms_before_,
-                'reentry_rms_after': self.virtual_.reentry_rms_after_}
+                'reentry_rms_after': self.virtual_.reentry_rms_after_,
+                'validation_folds': self.validation_folds, 'heldout_bound': self.heldout_bound,
+                'heldout_sensor2_error': self.heldout_sensor2_error_,
+                'heldout_reentry_error': self.heldout_reentry_error_, 'heldout_count': self.heldout_count_,
+                'heldout_limit': self.heldout_limit_}
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix='.' + path.name, suffix='.npz')
         os.close(fd)
         try:
@@ -223,12 +249,20 @@ class SensorManifoldModel:
             if not _number(meta[name]) or meta[name] < 0 or (name == 'dt' and meta[name] == 0):
                 raise ValueError(f'{name} {meta[name]!r} must be a finite number (> 0 for dt, else >= 0)')
         for name, low in (('grid_rows', 2), ('grid_cols', 2), ('jacobian_degree', 0), ('dimension', 0),
-                          ('n_samples', 0), ('n_excursions', 0)):
+                          ('n_samples', 0), ('n_excursions', 0), ('validation_folds', 0), ('heldout_count', 0)):
             if not isinstance(meta[name], int) or isinstance(meta[name], bool) or meta[name] < low:
                 raise ValueError(f'{name} {meta[name]!r} must be an integer >= {low}')
         if meta['jacobian_degree'] > 4:
             raise ValueError(f"jacobian_degree {meta['jacobian_degree']} above 4")
-        for name in ('reentry_rms_before', 'reentry_rms_after'):
+        if meta['validation_folds'] < 2:
+            raise ValueError(f"validation_folds {meta['validation_folds']!r} must be >= 2")
+        for name in ('heldout_bound', 'heldout_limit'):
+            if not _number(meta[name]) or meta[name] < 0 or (name == 'heldout_bound' and meta[name] == 0):
+                raise ValueError(f'{name} {meta[name]!r} must be a finite number (> 0 for the bound, else >= 0)')
+        if not (_number(meta['heldout_sensor2_error']) or meta['heldout_sensor2_error'] == float('inf')) \
+                or meta['heldout_sensor2_error'] < 0:
+            raise ValueError(f"heldout_sensor2_error {meta['heldout_sensor2_error']!r} must be >= 0 (inf: unknown)")
+        for name in ('reentry_rms_before', 'reentry_rms_after', 'heldout_reentry_error'):
             value = meta[name]
             if not (isinstance(value, float) and (np.isnan(value) or (np.isfinite(value) and value >= 0))):
                 raise ValueError(f'{name} {value!r} must be a number >= 0 (NaN: no excursion)')
@@ -261,8 +295,12 @@ class SensorManifoldModel:
         if noise.shape != (2,) or not np.all(np.isfinite(noise)) or np.any(noise < 0):
             raise ValueError(f"sensor2_noise {meta['sensor2_noise']!r} must be two numbers >= 0")
 
-        model = cls(meta['dt'], rows, cols, degree, meta['virtual_prior_weight'], meta['route_travel_weight'])
+        model = cls(meta['dt'], rows, cols, degree, meta['virtual_prior_weight'], meta['route_travel_weight'],
+                    meta['validation_folds'], meta['heldout_bound'])
         model.dimension_ = meta['dimension']
+        model.heldout_sensor2_error_ = float(meta['heldout_sensor2_error'])
+        model.heldout_reentry_error_ = float(meta['heldout_reentry_error'])
+        model.heldout_count_, model.heldout_limit_ = meta['heldout_count'], float(meta['heldout_limit'])
         model.sensor2_noise_ = noise
         model.n_samples_, model.n_excursions_ = meta['n_samples'], meta['n_excursions']
         model.sensor2_box_ = arrays['sensor2_box']

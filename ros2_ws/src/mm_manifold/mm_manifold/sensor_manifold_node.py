@@ -241,8 +241,8 @@ class SensorManifold(Node):
             f'{m.virtual_.reentry_rms_before_:.2f} -> {m.virtual_.reentry_rms_after_:.2f} grid units, '
             f'{len(m.virtual_.overlap_sensor2_)} overlap samples')
         if not m.ready:
-            self.get_logger().warn(f'sensor 2 was not seen during the excursions: no sensor-2 goal can be mapped; '
-                                   f'refitting after {max(self.learn_after // 4, 1)} more samples')
+            self.get_logger().warn(f'model not ready ({m.readiness()}): refitting after '
+                                   f'{max(self.learn_after // 4, 1)} more samples')
 
     # --- inputs -------------------------------------------------------------------------------------------------
     def _on_command(self, msg: Float64MultiArray) -> None:

@@ -101,6 +101,11 @@ class VirtualSensorSpace:
         self.goal_neighbors = goal_neighbors
 
     def fit(self, in_range_field: PolynomialJacobianField, excursions: List[Excursion]) -> 'VirtualSensorSpace':
+        self._fit_field(in_range_field, excursions)
+        self._fit_overlap(excursions)
+        return self
+
+    def _fit_field(self, in_range_field: PolynomialJacobianField, excursions: List[Excursion]) -> None:
         self.field_ = ExtrapolatedField(in_range_field)
         closed = [e for e in excursions if e.end is not None and 0 < len(e.commands) <= self.max_excursion_steps]
         self.n_excursions_ = len(closed)
@@ -122,8 +127,50 @@ class VirtualSensorSpace:
             self.reentry_rms_after_ = float(np.sqrt(np.mean(after.reshape(-1, ends.shape[1]) ** 2) * ends.shape[1]))
         else:
             self.reentry_rms_before_ = self.reentry_rms_after_ = float('nan')
-        self._fit_overlap(excursions)
-        return self
+
+    def validate(self, in_range_field: PolynomialJacobianField, excursions: List[Excursion], folds: int,
+                 random_state: Optional[int] = 0) -> dict:
+        """Held-out check of what a goal relies on: the excursions that saw sensor 2 are split into `folds`; each
+        fold's excursions are predicted by a space fitted on the others (correction and overlap). For each held-out
+        sensor-2 reading, its excursion's commands are integrated from its exit in that space, and the reading the
+        overlap of the other excursions gives there (`goal_neighbors` nearest) is compared with the reading seen.
+        Returns sensor2_error (median |predicted - seen| [m], inf with fewer such excursions than folds),
+        reentry_error (RMS held-out re-entry error [grid units], NaN without closed ones) and the held-out count."""
+        seen = [i for i, e in enumerate(excursions) if e.sensor2 and e.commands]
+        if len(seen) < folds:
+            return dict(sensor2_error=float('inf'), reentry_error=float('nan'), held_out=0)
+        rng = np.random.default_rng(random_state)
+        fold_of = np.full(len(excursions), -1)
+        fold_of[rng.permutation(seen)] = np.arange(len(seen)) % folds
+        others = np.flatnonzero(fold_of < 0)
+        fold_of[others] = rng.integers(0, folds, len(others))       # closed excursions without sensor 2 as well
+        errors, reentry = [], []
+        for f in range(folds):
+            train = [e for e, k in zip(excursions, fold_of) if k != f]
+            test = [e for e, k in zip(excursions, fold_of) if k == f]
+            space = VirtualSensorSpace(self.dt, self.box, self.bounds, self.prior_weight, self.max_excursion_steps,
+                                       self.goal_neighbors, self.route_travel_weight)
+            space._fit_field(in_range_field, train)
+            space._fit_overlap(train)
+            closed = [e for e in test if e.end is not None and 0 < len(e.commands) <= self.max_excursion_steps]
+            if closed:
+                reentry.append(space.predict_reentry(closed) - np.array([e.end for e in closed]))
+            with_s2 = [e for e in test if e.sensor2 and e.commands]
+            if not with_s2 or not len(space.overlap_coordinates_):
+                continue
+            starts, commands, _ = self._pack(with_s2)
+            traj = integrate_batch(space.field_, starts, commands, self.dt, self.bounds)
+            k = min(self.goal_neighbors, len(space.overlap_coordinates_))
+            for i, e in enumerate(with_s2):
+                for n_applied, reading in e.sensor2:
+                    d = np.linalg.norm(space.overlap_coordinates_ - traj[i, n_applied], axis=1)
+                    near = np.argsort(d)[:k]
+                    w = 1.0 / (d[near] + 1e-3)
+                    predicted = (space.overlap_sensor2_[near] * w[:, None]).sum(axis=0) / w.sum()
+                    errors.append(float(np.max(np.abs(predicted - reading))))
+        reentry_error = (float(np.sqrt(np.mean(np.concatenate(reentry) ** 2) * 2)) if reentry else float('nan'))
+        return dict(sensor2_error=float(np.median(errors)) if errors else float('inf'), reentry_error=reentry_error,
+                    held_out=len(errors))
 
     def _pack(self, excursions: List[Excursion]):
         T = max(len(e.commands) for e in excursions)

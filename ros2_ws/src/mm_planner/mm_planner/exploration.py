@@ -8,7 +8,10 @@ A lost reading (NaN) is unknown, not out of range: the last valid value of that 
 inside sensor-1 range, a random rotation / run / rotation leaves the range (often into sensor 2's), then the robot
 undoes the segments in a different order, so it comes back near - not exactly at - where it left; if that does not
 bring sensor 1 back, it retraces every command since it left (differential drive is exactly reversible), which
-guarantees the return without any world model. Practice: while an excursion has sensor 2 in range, the robot now
+guarantees the return without any world model. An excursion that brought sensor 2 into range is remembered (its
+segments, in steps) and, with probability `repeat_probability`, a later excursion repeats one of those with each
+segment's length jittered: sensor 2's range may be a small target that random excursions rarely hit, and what reached
+it once reaches it again from a similar exit. Practice: while an excursion has sensor 2 in range, the robot now
 and then inserts a few short random turns and drives followed by their exact reverse, so that sensor 2's Jacobians
 are learned from many samples and the excursion resumes where it was.
 """
@@ -25,21 +28,34 @@ SENSOR2 = (3, 4)
 
 class RandomExplorer:
     """Hyperparameters: wheel speeds for turning and driving [rad/s], hold range of a random command [steps],
-    excursion probability per decision when the front-centre reading is below `excursion_below` [m], the longest run
-    of an excursion [m], reflex distances [m], approach_bias (probability that a run in the middle of the front
+    excursion probability per decision when the front-centre reading is below `excursion_below` [m], an excursion's
+    first turn [steps, range], longest run and largest second turn [steps], repeat_probability and repeat_jitter
+    (relative change of each segment's length) of a successful excursion, approach_probability (a new excursion
+    first drives closer to the wall), reflex distances [m], approach_bias (probability that a run in the middle of the front
     range goes toward the wall), practice_probability (per step with sensor 2 in range during an excursion) and
     practice_segments (random turn/drive segments per practice, each undone), random_state."""
 
     def __init__(self, turn_speed: float = 2.0, drive_speed: float = 5.0, hold_steps=(4, 25),
-                 excursion_probability: float = 0.3, excursion_below: float = 0.6, excursion_run: float = 0.2,
-                 near: float = 0.08, far: float = 1.25, approach_bias: float = 0.55, max_retrace: int = 400, practice_probability: float = 0.15,
+                 excursion_probability: float = 0.3, excursion_below: float = 0.6, excursion_turn_steps=(7, 21),
+                 excursion_run_steps: int = 40, excursion_turn2_steps: int = 5, repeat_probability: float = 0.0,
+                 repeat_jitter: float = 0.2, approach_probability: float = 0.0, near: float = 0.08, far: float = 1.25, approach_bias: float = 0.55, max_retrace: int = 400, practice_probability: float = 0.15,
                  practice_segments: int = 4, random_state: Optional[int] = None):
         self.turn_speed = turn_speed
         self.drive_speed = drive_speed
         self.hold_steps = hold_steps
         self.excursion_probability = excursion_probability
         self.excursion_below = excursion_below
-        self.excursion_run = excursion_run
+        self.excursion_turn_steps = excursion_turn_steps
+        self.excursion_run_steps = excursion_run_steps
+        self.excursion_turn2_steps = excursion_turn2_steps
+        self.repeat_probability = repeat_probability
+        self.repeat_jitter = repeat_jitter
+        self.approach_probability = approach_probability
+        self.successes: List[list] = []          # segments of excursions that brought sensor 2 into range
+        self.current: Optional[tuple] = None      # (exit front-centre reading, segments) of the excursion under way
+        self.chosen: list = []                    # segments of the excursion being approached
+        self.approach_target = 0.0
+        self.current_saw_sensor2 = False
         self.near = near
         self.far = far
         self.approach_bias = approach_bias
@@ -82,24 +98,54 @@ class RandomExplorer:
             cmd = [v - bend, v + bend]
         self.plan.extend(self._segment(cmd, steps))
 
+    def _start_approach(self, front: np.ndarray) -> None:
+        """Choose the excursion: a repeat of one that reached sensor 2 (with probability repeat_probability) or a
+        new random one. A repeat first drives toward the wall until the front-centre reading is the repeated one's
+        exit reading (jittered); a new one does so with probability approach_probability, to an exit reading uniform
+        between the reflex distance and the current reading (sensor 2 may only see the wall from close by)."""
+        self._finish_excursion()
+        self.mode = 'approach'
+        self.approach_target = np.inf           # no approach: the excursion starts here
+        if self.repeat_probability > 0 and self.successes and self.rng.random() < self.repeat_probability:
+            exit_reading, base = self.successes[self.rng.integers(len(self.successes))]
+            jitter = self.rng.uniform(1 - self.repeat_jitter, 1 + self.repeat_jitter, len(base) + 1)
+            self.approach_target = exit_reading * jitter[0]
+            self.chosen = [(cmd, max(0, round(steps * j))) for (cmd, steps), j in zip(base, jitter[1:])]
+            return
+        turn = self.rng.choice([-1, 1])
+        turn_steps = self.rng.uniform(*self.excursion_turn_steps)
+        run = self.rng.choice([-1.0, 1.0])
+        run_steps = self.rng.uniform(0.0, self.excursion_run_steps)
+        turn2_steps = self.rng.uniform(-self.excursion_turn2_steps, self.excursion_turn2_steps)
+        turn2 = np.sign(turn2_steps)
+        self.chosen = [(np.array([-turn, turn]) * self.turn_speed, round(turn_steps)),
+                       (np.array([run, run]) * self.drive_speed, round(run_steps)),
+                       (np.array([-turn2, turn2]) * self.turn_speed, round(abs(turn2_steps)))]
+        if self.approach_probability > 0 and self.rng.random() < self.approach_probability:
+            self.approach_target = self.rng.uniform(self.near, front[1])
+
+    def _approach(self, front: np.ndarray, too_close: bool) -> None:
+        if front[1] > self.approach_target and not too_close:
+            self.plan.append(np.full(2, self.drive_speed * 0.5))
+        else:
+            self._excursion(front)
+
+    def _finish_excursion(self) -> None:
+        if self.current is not None and self.current_saw_sensor2:
+            self.successes.append(self.current)
+        self.current = None
+
     def _excursion(self, front: np.ndarray) -> None:
-        """Rotate, run, rotate; then undo the segments in the same (not reversed) order: a nearby return."""
-        turn1 = self.rng.choice([-1, 1]) * self.rng.uniform(0.7, 2.1)        # rad
-        run = self.rng.choice([-1.0, 1.0]) * self.rng.uniform(0.0, self.excursion_run)
-        turn2 = self.rng.uniform(-0.5, 0.5)
-        omega = 2 * 0.02 * self.turn_speed / 0.04                             # body rate of an in-place turn
-        v = 0.02 * self.drive_speed
-        segments = [
-            ([-np.sign(turn1) * self.turn_speed, np.sign(turn1) * self.turn_speed], abs(turn1) / omega / 0.05),
-            ([np.sign(run) * self.drive_speed] * 2, abs(run) / v / 0.05),
-            ([-np.sign(turn2) * self.turn_speed, np.sign(turn2) * self.turn_speed], abs(turn2) / omega / 0.05),
-        ]
+        """Rotate, run, rotate (the segments chosen by _start_approach); then undo the segments in the same (not
+        reversed) order: a nearby return."""
+        segments = self.chosen
         for cmd, steps in segments:
-            self.plan.extend(self._segment(cmd, round(steps)))
+            self.plan.extend(self._segment(cmd, steps))
         for cmd, steps in segments:
-            self.plan.extend(self._segment(-np.asarray(cmd), round(steps)))
+            self.plan.extend(self._segment(-np.asarray(cmd), steps))
         self.mode = 'excursion'
         self.excursions_started += 1
+        self.current, self.current_saw_sensor2 = (float(front[1]), segments), False
 
     def _practice(self) -> None:
         """Random short turns/drives, then the same in reverse order with negated commands (exact undo)."""
@@ -137,6 +183,10 @@ class RandomExplorer:
             self.plan.extend(self._segment([away * self.drive_speed] * 2, 6))
             self.mode = 'wander'
         in_range2 = bool(np.all(np.isfinite(readings[list(SENSOR2)])))
+        if self.current is not None:
+            self.current_saw_sensor2 |= in_range2 and not in_range
+            if self.mode != 'excursion':          # it ended (back in range, reflex or retrace)
+                self._finish_excursion()
         if self.practice_left > 0:
             self.practice_left -= 1
         elif (self.mode == 'excursion' and in_range2 and not too_close and self.plan
@@ -148,8 +198,11 @@ class RandomExplorer:
                 self.plan.extend(-c for c in reversed(self.since_in_range[-self.max_retrace:]))
                 self.since_in_range = []
                 self.mode = 'retrace'
+            elif self.mode == 'approach' and in_range:
+                self._approach(front, too_close)
             elif in_range and front[1] < self.excursion_below and self.rng.random() < self.excursion_probability:
-                self._excursion(front)
+                self._start_approach(front)
+                self._approach(front, too_close)
             else:
                 self.mode = 'wander'
                 self._random_wander(front)

@@ -76,12 +76,16 @@ class Decision:
 
 class WallAgent:
     """Hyperparameters: dt [s] of a step, exploration_steps, max_wheel_speed [rad/s], tolerance [m] (when the goal
-    gives none), max_reach_steps, random_state of the exploration."""
+    gives none), max_reach_steps, random_state of the exploration, max_exploration_steps (the cap: a model still not
+    ready after this many exploration steps ends FAILED with its reason; None: 4 x exploration_steps)."""
 
     def __init__(self, dt: float, exploration_steps: int = 10000, max_wheel_speed: float = 6.0,
-                 tolerance: float = 0.01, max_reach_steps: int = 1500, random_state: Optional[int] = 0):
+                 tolerance: float = 0.01, max_reach_steps: int = 1500, random_state: Optional[int] = 0,
+                 max_exploration_steps: Optional[int] = None):
         self.dt = dt
         self.exploration_steps = exploration_steps
+        self.max_exploration_steps = (4 * exploration_steps if max_exploration_steps is None
+                                      else max_exploration_steps)
         self.max_wheel_speed = max_wheel_speed
         self.tolerance = tolerance
         self.max_reach_steps = max_reach_steps
@@ -134,14 +138,21 @@ class WallAgent:
         self.model = model
         if not model.ready:
             if self.phase == ControllerStatus.PHASE_LEARNING:
-                extra = max(self.exploration_steps // 4, 1)
+                extra = min(max(self.exploration_steps // 4, 1), self.max_exploration_steps - self.explored)
+                if extra <= 0:
+                    self._set_phase(ControllerStatus.PHASE_FAILED, f'model not ready after {self.explored} '
+                                    f'exploration steps (the cap): {model.readiness}')
+                    return
                 self.exploration_budget = self.explored + extra
-                self._set_phase(ControllerStatus.PHASE_EXPLORING, f'the model has not seen sensor 2: exploring '
-                                                                  f'{extra} more steps')
+                self._set_phase(ControllerStatus.PHASE_EXPLORING, f'model not ready ({model.readiness}; held-out '
+                                f'sensor-2 error {model.heldout_sensor2_error:.4f} m, bound {model.heldout_limit:.4f}'
+                                f' m): exploring {extra} more steps')
         elif self.phase in (ControllerStatus.PHASE_LEARNING, ControllerStatus.PHASE_EXPLORING):
             skipped = self.phase == ControllerStatus.PHASE_EXPLORING and self.explored < self.exploration_budget
             self._set_phase(ControllerStatus.PHASE_WAITING_FOR_GOAL,
-                            'a learned model exists: exploration skipped' if skipped else 'model ready')
+                            'a learned model exists: exploration skipped' if skipped else
+                            f'model ready (held-out sensor-2 error {model.heldout_sensor2_error:.4f} m within '
+                            f'{model.heldout_limit:.4f} m)')
             self._start_goal()
 
     def check_goal(self, goal: Goal) -> Optional[str]:
@@ -174,7 +185,8 @@ class WallAgent:
         goal, self.goal = self.goal, None
         self.goal_stamp = goal.stamp
         reading = np.asarray(goal.reading, dtype=float)
-        problem = self.model.unreadable_goal(reading)
+        problem = self.model.unreadable_goal(reading) or (None if self.model.ready else
+                                                          f'the model is not ready: {self.model.readiness}')
         tolerance = goal.tolerance or self.tolerance
         self.controller = SwitchingController(self.dt, max_wheel_speed=self.max_wheel_speed, tolerance=tolerance)
         if problem is None:

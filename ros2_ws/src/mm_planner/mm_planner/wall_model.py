@@ -43,7 +43,7 @@ def _ordered_box(box: np.ndarray, name: str) -> np.ndarray:
 
 
 class WallModel:
-    """Attributes: dt, ready, samples, virtual_field, sensor2_field (None until learned), virtual_bounds (2, 2),
+    """Attributes: dt, ready, readiness (why not ready), held-out errors and their limit, samples, virtual_field, sensor2_field (None until learned), virtual_bounds (2, 2),
     sensor2_box (2, 2, NaN when sensor 2 was never seen), sensor2_noise (2,), sensor2_range (2,), region_anchors,
     region_jacobians and the overlap arrays of the routes."""
 
@@ -105,9 +105,24 @@ class WallModel:
         self.overlap_sensor2 = _array(msg, 'overlap_sensor2', (o, 2))
         self.overlap_exits = _array(msg, 'overlap_exits', (o, 2))
         self.overlap_travel = _array(msg, 'overlap_travel', (o,))
+        e, r, limit = msg.heldout_sensor2_error, msg.heldout_reentry_error, msg.heldout_limit
+        if not (e >= 0 and not math.isnan(e)) or not (math.isnan(r) or (math.isfinite(r) and r >= 0)):
+            raise ValueError(f'held-out errors {e}, {r} must be >= 0 (sensor 2: inf when unknown, re-entry: NaN)')
+        if not (math.isfinite(limit) and limit >= 0):
+            raise ValueError(f'heldout_limit {limit} must be finite and >= 0')
+        self.heldout_sensor2_error, self.heldout_reentry_error = float(e), float(r)
+        self.heldout_limit, self.heldout_count = float(limit), int(msg.heldout_count)
         self.ready = bool(msg.ready)
+        if self.ready:
+            self.readiness = ''
+        elif self.sensor2_field is None or o == 0:
+            self.readiness = 'the excursions have not seen sensor 2'
+        else:
+            self.readiness = msg.readiness[:300] or 'not ready (no reason given)'
         if self.ready and (self.sensor2_field is None or o == 0 or not len(msg.sensor2_box)):
             raise ValueError('marked ready without a sensor-2 field, box and overlap')
+        if self.ready and not e <= limit:
+            raise ValueError(f'marked ready with a held-out error {e} m above its bound {limit} m')
         return self
 
     def sensor1_jacobian(self, coordinates: np.ndarray) -> np.ndarray:

@@ -90,6 +90,48 @@ def test_a_model_marked_ready_without_overlap_is_refused(model):
     assert not WallModel.from_msg(msg).ready
 
 
+def test_the_held_out_estimate_travels_with_the_model_and_gates_readiness(model):
+    """The model carries its held-out sensor-2 error and the bound; one marked ready above its bound is refused, and
+    a fit whose bound is tighter than its held-out error is not ready and says why."""
+    msg = model_message(WheeledRobot(), model)
+    view = WallModel.from_msg(msg)
+    assert model.heldout_count_ > 0 and math.isfinite(model.heldout_sensor2_error_)
+    assert view.heldout_sensor2_error == model.heldout_sensor2_error_ and view.heldout_limit == model.heldout_limit_
+    assert view.ready == (model.heldout_sensor2_error_ <= model.heldout_limit_) and msg.readiness == (
+        model.readiness() or '')
+    msg.ready, msg.heldout_sensor2_error = True, msg.heldout_limit * 2 + 1e-3
+    with pytest.raises(ValueError, match='held-out'):
+        WallModel.from_msg(msg)
+    msg.heldout_sensor2_error = -1.0
+    with pytest.raises(ValueError, match='held-out'):
+        WallModel.from_msg(msg)
+    strict = copy.copy(model)
+    strict.heldout_limit_ = model.heldout_sensor2_error_ / 2
+    assert not strict.ready and 'held-out sensor-2 error' in strict.readiness()
+    strict_view = WallModel.from_msg(model_message(WheeledRobot(), strict))
+    assert not strict_view.ready and 'held-out' in strict_view.readiness
+
+
+def test_agent_explores_on_while_the_model_is_not_ready_and_fails_at_the_cap(model):
+    strict = copy.copy(model)
+    strict.heldout_limit_ = model.heldout_sensor2_error_ / 2
+    view = WallModel.from_msg(model_message(WheeledRobot(), strict))
+    agent = WallAgent(DT, exploration_steps=8, random_state=0, max_exploration_steps=10)
+    far = np.array([0.6, 0.5, 0.6, np.inf, np.inf])
+    while agent.step(Observation(state=True, readings=far, learner_samples=agent.explored + 1)).command is not None:
+        pass
+    assert agent.phase == ControllerStatus.PHASE_LEARNING and agent.explored == 8
+    decision = agent.step(Observation(model=view))
+    assert decision.phase_name == 'EXPLORING' and 'held-out sensor-2 error' in decision.detail
+    while agent.step(Observation(state=True, readings=far, learner_samples=agent.explored + 1)).command is not None:
+        pass
+    assert agent.explored == 10
+    decision = agent.step(Observation(model=view))
+    assert decision.phase_name == 'FAILED' and 'the cap' in decision.detail and 'held-out' in decision.detail
+    decision = agent.step(Observation(goal=Goal(np.array([0.2, 0.2]), stamp=3)))
+    assert decision.phase_name == 'FAILED' and 'not ready' in decision.detail
+
+
 def test_agent_never_commands_non_finite_and_reports_its_phases(model):
     view = WallModel.from_msg(model_message(WheeledRobot(), model))
     agent = WallAgent(DT, exploration_steps=0)
