@@ -147,6 +147,9 @@ class ImageEmbeddingNode(Node):
                                "now, contact distance from the touch labels) or 'embedding' (the predicted frame "
                                "embedded, the contact region applied; the paper's route)", read_only=True,
                                additional_constraints='one of keypoint_distance, embedding'),
+            map_threshold=declare(self, 'map_threshold', 0.5, 'Closeness to the contact region at or above which a '
+                                  'predicted frame counts as contact (embedding route; chosen by mm_bringup.tune_arm)',
+                                  min_value=-9.9, max_value=9.9, read_only=True),
             robot_margin=declare(self, 'robot_margin', 14.0, 'px: keypoints this close to the robot\'s segments '
                                  'are the robot\'s own (keypoint_distance)', min_value=0.0, max_value=99.0,
                                  read_only=True),
