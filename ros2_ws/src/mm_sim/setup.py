@@ -12,6 +12,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/mm_sim']),
         ('share/mm_sim', ['package.xml']),
         ('share/mm_sim/config', glob('config/*')),
+        ('share/mm_sim/layouts', glob('layouts/*.yaml')),
         ('share/mm_sim/launch', glob('launch/*.launch.py')),
     ],
     install_requires=['setuptools'],
