@@ -77,14 +77,14 @@ class Decision:
 class WallAgent:
     """Hyperparameters: dt [s] of a step, exploration_steps, max_wheel_speed [rad/s], tolerance [m] (when the goal
     gives none), max_reach_steps, random_state of the exploration, max_exploration_steps (the cap: a model still not
-    ready after this many exploration steps ends FAILED with its reason; None: 4 x exploration_steps)."""
+    ready after this many exploration steps ends FAILED with its reason; None: 4 x exploration_steps, at least 4)."""
 
     def __init__(self, dt: float, exploration_steps: int = 10000, max_wheel_speed: float = 6.0,
                  tolerance: float = 0.01, max_reach_steps: int = 1500, random_state: Optional[int] = 0,
                  max_exploration_steps: Optional[int] = None):
         self.dt = dt
         self.exploration_steps = exploration_steps
-        self.max_exploration_steps = (4 * exploration_steps if max_exploration_steps is None
+        self.max_exploration_steps = (4 * max(exploration_steps, 1) if max_exploration_steps is None
                                       else max_exploration_steps)
         self.max_wheel_speed = max_wheel_speed
         self.tolerance = tolerance
