@@ -338,6 +338,9 @@ def test_the_watchdog_brings_the_robot_back_when_the_route_is_wrong(paper_robot_
     wrong = WallModel.from_msg(msg)
     low, high = wrong.virtual_bounds
     wrong.overlap_coordinates = low + high - wrong.overlap_coordinates         # mirrored inside the learned space
+    # This short exploration has too few sensor-2 excursions for the held-out readiness gate (tested in
+    # test_wall_model); the watchdog is what is tested here, so the wrong model is taken as ready.
+    wrong.ready, wrong.readiness = True, ''
     goal_reading = sensor2_goal_reading(robot, (0.0, 0.12, 0.0))
     episode = run_episode(robot, model, PAPER_START, goal_reading, tolerance=0.005, dt=DT, wall_model=wrong)
     assert not episode.reached
