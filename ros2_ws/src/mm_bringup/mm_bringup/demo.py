@@ -140,7 +140,9 @@ def draw_figures(model_path: Path, samples: np.ndarray, episode, goal: np.ndarra
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--output', default='results/demo_bag', help='bag directory (replaced)')
-    parser.add_argument('--figures', default='results/figures', help='where the Section 2 figures go')
+    parser.add_argument('--figures', default='results/demo_figures',
+                        help="where the demo run's Section 2 figures go (overlap layout; results/figures keeps the "
+                             "paper-layout Figs. 7-9 of figures_wheeled)")
     parser.add_argument('--exploration-steps', type=int, default=10000, help='wheeled-robot exploration steps')
     parser.add_argument('--arm-exploration-steps', type=int, default=500, help='arm exploration steps')
     parser.add_argument('--skip-arm', action='store_true', help='run the Section 2 experiment only')
