@@ -63,7 +63,9 @@ def test_killed_nodes_rejoin_and_the_paper_task_completes(tmp_path):
             recovery[executable] = _kill_and_restart(wall, executable, clock)
         print('recovery after SIGKILL + restart [s]:', {k: round(v, 2) for k, v in recovery.items()})
         try:
-            wall.wait_learned(timeout=90.0)
+            # Learning may take several fits (a model whose held-out predictions miss the bound explores on), so
+            # the bound is generous: the loop stalling for good is what this test must catch.
+            wall.wait_learned(timeout=600.0)
         except TimeoutError as exc:
             raise AssertionError(f'the graph stalled after the restarts at step {_step(wall)}: controller phase '
                                  f'{wall.status.phase_name if wall.status else None!r}, manifold samples '
@@ -74,4 +76,5 @@ def test_killed_nodes_rejoin_and_the_paper_task_completes(tmp_path):
     assert episode.phase in DONE
     assert episode.phase == ControllerStatus.PHASE_GOAL_REACHED, episode.detail
     final = episode.poses[-1]
-    assert abs(final[1] - 0.25) < 0.02 and abs(math.sin(final[2])) < 0.2, final
+    # Both side readings within the 5 mm tolerance allow a heading of up to ~0.33 rad off parallel (sensors 3 cm apart).
+    assert abs(final[1] - 0.25) < 0.02 and abs(math.sin(final[2])) < 0.35, final

@@ -98,6 +98,7 @@ class WallAgent:
         self.phase_step = 0
         self.explored = 0
         self.exploration_budget = exploration_steps     # grows when the learned model is not ready
+        self.learner_lost = 0                           # samples the learner lost (restarts) and were made up for
         self.pending: Optional[Observation] = None       # the newest state not answered with a command yet
         self.reach_steps = 0
         self.detail = 'started'
@@ -207,13 +208,16 @@ class WallAgent:
         command, error, target = None, math.nan, ()
         if self.phase == ControllerStatus.PHASE_EXPLORING:
             if (self.explored >= self.exploration_budget and state.learner_samples is not None
-                    and state.learner_samples < self.explored):
+                    and state.learner_samples + self.learner_lost < self.explored):
                 # The learner lost samples (it restarted): without them it would never learn and the loop would
-                # wait for good. Explore until it holds as many as were explored.
-                missing = self.explored - state.learner_samples
+                # wait for good. Explore as many more as it lost, once per loss (the lost ones never come back, so
+                # comparing its count with all steps explored would chase them for ever).
+                expected = self.explored - self.learner_lost
+                missing = expected - state.learner_samples
+                self.learner_lost += missing
                 self.exploration_budget = self.explored + missing
                 self._set_phase(ControllerStatus.PHASE_EXPLORING, f'the learner holds {state.learner_samples} of '
-                                                                  f'{self.explored} samples: exploring {missing} more')
+                                                                  f'{expected} samples: exploring {missing} more')
             if self.explored >= self.exploration_budget:
                 self._set_phase(ControllerStatus.PHASE_LEARNING, f'{self.explored} exploration steps done')
             else:

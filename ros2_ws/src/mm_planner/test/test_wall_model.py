@@ -173,3 +173,21 @@ def test_agent_explores_on_while_the_learner_holds_fewer_samples_than_explored()
     assert agent.step(Observation(state=True, readings=far, learner_samples=4)).command is not None
     decision = agent.step(Observation(state=True, readings=far, learner_samples=8))
     assert decision.command is None and decision.phase_name == 'LEARNING'
+
+
+def test_agent_makes_up_for_a_learner_restart_once():
+    """The samples a restarted learner lost never come back: once they are made up for, the learner's count stays
+    behind the steps explored by that many, and the agent must go on to LEARNING instead of chasing them for ever
+    (a kill-and-restart graph explored 17 000 steps that way)."""
+    agent = WallAgent(DT, exploration_steps=5, random_state=0)
+    far = np.array([0.6, 0.5, 0.6, np.inf, np.inf])
+    for k in range(3):
+        assert agent.step(Observation(state=True, readings=far, learner_samples=k + 1)).command is not None
+    held = 0                                               # restarted after step 3: the learner holds nothing
+    for _ in range(20):
+        decision = agent.step(Observation(state=True, readings=far, learner_samples=held))
+        if decision.command is None:
+            break
+        held += 1
+    assert decision.phase_name == 'LEARNING', decision.detail
+    assert held == 5 and agent.explored == 8               # 3 lost steps made up for once
