@@ -82,6 +82,10 @@ def _ns(stamp) -> int:
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
+LOOP_START_TIMEOUT = 30.0    # wall seconds for the first lockstep step after the loop's nodes started
+LOOP_START_ATTEMPTS = 2      # starts of the loop's nodes before giving up
+
+
 class WallGraph:
     """Start the graph (optionally with a recorder already running elsewhere) and run reaching episodes."""
 
@@ -136,16 +140,33 @@ class WallGraph:
                                                 'model_path': learner_path}, []),
         ]
         sim_files = [a for f in sim_params_files for a in ('--params-file', str(f))]
-        for package, executable, parameters, published in steps:
-            extra = ['--ros-args', *sim_files] if executable == 'wheeled_sim' and sim_files else []
-            self.nodes.append(self.graph.start(package, executable, parameters, extra_args=extra))
-            # One node at a time, each seen on the graph before the next starts (simultaneous starts occasionally
-            # left two participants without matching endpoints, and the loop never started).
-            self.spin_until(lambda: executable in node.get_node_names(), 60.0, f'{executable} to appear')
-            wait = [t for t in published if t in recorded_topics]
-            if recorder and wait:
-                self.spin_until(lambda: all(any(i.node_name == recorder for i in node.get_subscriptions_info_by_topic(t))
-                                            for t in wait), 60.0, f'{recorder} to subscribe to {wait}')
+        for attempt in range(LOOP_START_ATTEMPTS):
+            for package, executable, parameters, published in steps:
+                extra = ['--ros-args', *sim_files] if executable == 'wheeled_sim' and sim_files else []
+                self.nodes.append(self.graph.start(package, executable, parameters, extra_args=extra))
+                # One node at a time, each seen on the graph before the next starts (simultaneous starts
+                # occasionally left two participants without matching endpoints, and the loop never started).
+                self.spin_until(lambda: executable in node.get_node_names(), 60.0, f'{executable} to appear')
+                wait = [t for t in published if t in recorded_topics]
+                if recorder and wait:
+                    self.spin_until(lambda: all(any(i.node_name == recorder
+                                                    for i in node.get_subscriptions_info_by_topic(t))
+                                                for t in wait), 60.0, f'{recorder} to subscribe to {wait}')
+            # A loop that never starts (endpoints that never matched) is detected here within LOOP_START_TIMEOUT
+            # and the loop's nodes are started again, instead of an experiment waiting for learning for good.
+            try:
+                self.spin_until(lambda: len({stamp for stamp, _ in self.recent_odom}) >= 2, LOOP_START_TIMEOUT,
+                                'the lockstep loop to start')
+                break
+            except TimeoutError:
+                if attempt + 1 == LOOP_START_ATTEMPTS:
+                    raise
+                print(f'[wall_graph] the lockstep loop did not start within {LOOP_START_TIMEOUT:.0f} s: '
+                      f'restarting {[n.label for n in self.nodes]}', flush=True)
+                for n in reversed(self.nodes):
+                    self.graph.stop(n)
+                self.nodes.clear()
+                self.recent_odom.clear()
 
     # --- callbacks (evaluation side) --------------------------------------------------------------------------------
     def _on_status(self, msg: ControllerStatus) -> None:
