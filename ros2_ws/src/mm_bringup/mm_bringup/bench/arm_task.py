@@ -29,7 +29,6 @@ Parts:
 from __future__ import annotations
 
 import time
-from collections import deque
 from pathlib import Path
 from typing import Dict, Optional
 
@@ -37,6 +36,7 @@ import numpy as np
 from scipy.stats import spearmanr
 from threadpoolctl import threadpool_limits
 
+from mm_bringup.arm_graph import free_path_exists
 from mm_manifold.arm_evaluation import evaluate_collision_prediction
 from mm_manifold.arm_learning import ArmStateLearner
 from mm_manifold.embedding import ImageEmbedding, synthetic_keypoint_frames
@@ -68,23 +68,6 @@ def truth_move_maps(model, grid: JointGrid, resolution: float = 0.02):
                 any_part[r, c] |= s.any_contact
                 hand[r, c] |= s.hand_contact
     return any_part, hand
-
-
-def free_path_exists(blocked: np.ndarray, start, goal) -> bool:
-    """Breadth-first search over 4-connected free cells."""
-    if blocked[start] or blocked[goal]:
-        return False
-    seen, todo = {tuple(start)}, deque([tuple(start)])
-    while todo:
-        r, c = todo.popleft()
-        if (r, c) == tuple(goal):
-            return True
-        for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-            n = (r + dr, c + dc)
-            if 0 <= n[0] < blocked.shape[0] and 0 <= n[1] < blocked.shape[1] and not blocked[n] and n not in seen:
-                seen.add(n)
-                todo.append(n)
-    return False
 
 
 def choose_task(model, grid: JointGrid, blocked: np.ndarray, rng: np.random.Generator, tries: int = 400):
