@@ -1016,26 +1016,25 @@ def _rebuild(path: Path, chunk_size: int, report: List[str]) -> FileSummary:
     out = McapFile(tmp, fsync=True, profile='ros2', library='mm bag reindex')
     schema_ids: Dict[int, int] = {}
     channel_ids: Dict[int, int] = {}
+
+    def copy_channel(channel) -> None:
+        if channel.id not in channel_ids:
+            schema = scan.schemas.get(channel.schema_id)
+            if schema is not None and schema.id not in schema_ids:
+                schema_ids[schema.id] = out.add_schema(schema.name, schema.encoding, schema.data)
+            channel_ids[channel.id] = out.add_channel(channel.topic, channel.message_encoding,
+                                                      schema_ids.get(channel.schema_id, 0), channel.metadata)
+
     try:
         for channel, message in scan.messages():
-            if channel.id not in channel_ids:
-                schema = scan.schemas.get(channel.schema_id)
-                if schema is not None and schema.id not in schema_ids:
-                    schema_ids[schema.id] = out.add_schema(schema.name, schema.encoding, schema.data)
-                channel_ids[channel.id] = out.add_channel(channel.topic, channel.message_encoding,
-                                                          schema_ids.get(channel.schema_id, 0), channel.metadata)
+            copy_channel(channel)
             out.add_message(channel_ids[channel.id], message.log_time, message.publish_time, message.data,
                             message.sequence)
             if out.pending_bytes >= chunk_size:
                 out.compression = scan.compression if scan.compression in _COMPRESSORS else 'none'
                 out.commit()
         for channel in scan.channels.values():   # channels without messages still describe the recording
-            if channel.id not in channel_ids:
-                schema = scan.schemas.get(channel.schema_id)
-                if schema is not None and schema.id not in schema_ids:
-                    schema_ids[schema.id] = out.add_schema(schema.name, schema.encoding, schema.data)
-                channel_ids[channel.id] = out.add_channel(channel.topic, channel.message_encoding,
-                                                          schema_ids.get(channel.schema_id, 0), channel.metadata)
+            copy_channel(channel)
         out.compression = scan.compression if scan.compression in _COMPRESSORS else 'none'
         out.commit()
         if out.finish() != 'summary':
