@@ -136,17 +136,24 @@ class Learned:
     model: Optional[SensorManifoldModel]
     samples: int
     detail: str
+    fitted: Optional[SensorManifoldModel] = None    # the last model fitted, ready or not (for tuning the bound)
 
 
 def learn(robot: WheeledRobot, exploration_steps: int, dt: float, random_state: int, start=PAPER_START,
-          max_samples: Optional[int] = None) -> Learned:
+          max_samples: Optional[int] = None, model_params: Optional[dict] = None,
+          explorer_params: Optional[dict] = None) -> Learned:
     """The graph's exploration and learning in process: the WallAgent explores until it asks for a model, the
     learner fits on every sample so far and the model reaches the agent through its message; a model that is not
     ready sends the agent exploring again (exploration_steps // 4 more) and the learner refits, as sensor_manifold
     does, until the agent waits for a goal, gives up, or `max_samples` (default 4 x exploration_steps) were
-    explored."""
+    explored. `model_params` (SensorManifoldModel) and `explorer_params` (RandomExplorer) are hyperparameters under
+    test (mm_bringup.tune_wall); a fit that fails (too little data) ends the loop without a model."""
     max_samples = max_samples or 4 * exploration_steps
     agent = WallAgent(dt, exploration_steps=exploration_steps, random_state=random_state)
+    for name, value in (explorer_params or {}).items():
+        if not hasattr(agent.explorer, name):
+            raise ValueError(f'RandomExplorer has no hyperparameter {name}')
+        setattr(agent.explorer, name, value)
     pose, bumped = tuple(start), False
     R, U = [], []
     model, r = None, None
@@ -155,7 +162,10 @@ def learn(robot: WheeledRobot, exploration_steps: int, dt: float, random_state: 
         if agent.phase == ControllerStatus.PHASE_LEARNING:
             continuous = np.ones(len(R), dtype=bool)
             continuous[-1:] = False
-            model = SensorManifoldModel(dt).fit(np.array(R), np.array(U), continuous)
+            try:
+                model = SensorManifoldModel(dt, **(model_params or {})).fit(np.array(R), np.array(U), continuous)
+            except ValueError as exc:
+                return Learned(None, len(R), f'fit failed: {exc}', model)
             # A model that is not ready sends the agent exploring again: it answers the state it left unanswered.
             u = agent.step(Observation(model=agent_model(robot, model))).command
         else:
@@ -168,7 +178,7 @@ def learn(robot: WheeledRobot, exploration_steps: int, dt: float, random_state: 
         U.append(u)
         pose, bumped = robot.step(pose, u, dt)
     ready = agent.phase == ControllerStatus.PHASE_WAITING_FOR_GOAL
-    return Learned(model if ready else None, len(R), agent.detail)
+    return Learned(model if ready else None, len(R), agent.detail, model)
 
 
 @dataclass

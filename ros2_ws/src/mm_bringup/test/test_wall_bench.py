@@ -3,9 +3,10 @@ by the graph harness, and cells summarise their episodes."""
 import math
 
 import numpy as np
+import pytest
 
 from mm_bringup.bench.wall_task import PAPER_GOAL_POSES, bench_cells, matrix_cells, summarise
-from mm_bringup.wall_experiment import layout_robot, sensor2_goal_reading
+from mm_bringup.wall_experiment import layout_robot, learn, sensor2_goal_reading
 from mm_bringup.wall_graph import GraphEpisode
 from mm_planner.switching_controller import SwitchingController
 from mm_planner.wall_agent import WallAgent
@@ -40,3 +41,17 @@ def test_the_paper_task_goal_is_seen_by_sensor2_alone_on_each_layout():
         robot, _ = layout_robot(layout)
         assert np.all(np.isfinite(sensor2_goal_reading(robot, pose)))
         assert not np.all(np.isfinite(robot.read(pose, noisy=False)[:3]))
+
+
+def test_learning_loop_takes_the_hyperparameters_under_test():
+    """The one explore-fit-explore-more loop serves the matrix and the tuning script: explorer hyperparameters reach
+    the agent's explorer (a misspelt one is refused), the sample cap holds, and the last fit is kept even when the
+    model is not ready (the tuning script scores it)."""
+    robot, dt = layout_robot('overlap')
+    with pytest.raises(ValueError, match='no hyperparameter'):
+        learn(robot, 100, dt, random_state=100, explorer_params={'repeat_probabilty': 0.5})
+    learned = learn(robot, 400, dt, random_state=100, max_samples=500, explorer_params={'repeat_probability': 0.5})
+    assert learned.samples <= 500
+    assert learned.fitted is not None or learned.detail.startswith('fit failed')
+    if learned.model is not None:
+        assert learned.model is learned.fitted and learned.model.ready
