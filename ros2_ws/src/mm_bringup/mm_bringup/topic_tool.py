@@ -94,10 +94,12 @@ def cli_node() -> Node:
     return Node(f'_ros2cli_{os.getpid()}', start_parameter_services=False, enable_rosout=False)
 
 
-def settle_graph(node: Node, timeout: float = 3.0) -> None:
+def settle_graph(node: Node, timeout: float = 8.0) -> None:
     """Spin until at least _DISCOVERY_WAIT s have passed, some other node has been seen, and the node and topic lists
     have not changed for _SETTLE s; at most `timeout` s (an empty graph costs the full timeout). There is no ros2
-    daemon caching the graph: every command discovers it afresh."""
+    daemon caching the graph: every command discovers it afresh. The bound is generous because a graph usually
+    appears within 0.3-3 s but a fresh-clone test once saw nothing after 3 s; a busy graph returns as soon as it has
+    settled."""
     start = time.monotonic()
     last_key, stable_since = None, start
     while True:
