@@ -119,8 +119,7 @@ def fig13(out: Path, ev) -> None:
         model.set_object_position(model.random_object_position(rng))
         truth, _ = truth_move_maps(model, grid)
         task = choose_task(model, grid, truth, rng)
-    pred = learner.predict_collision_map(KeypointExtractor()(model.render(grid.centre(task[0]))),
-                                         frame_joints=grid.centre(task[0]))
+    pred = learner.predict_collision_map(KeypointExtractor()(model.render(grid.centre(task[0]))))
     planner = DPPlanner(grid, clearance_reward=0.0)
     planner.update_collision(pred['collision'], pred['closeness'])
     run = execute_plan(model, grid, planner, task[0], task[1], JointMotion(model))
@@ -158,7 +157,9 @@ def tables(out: Path, bench_json: Path) -> None:
             ('pca_sphere', "Table 2 (the paper's method): PCA embedding, contact sphere"),
             ('pca_best', 'Table 2, best boundary: PCA embedding, region model chosen by cross-validation'),
             ('raw_sphere', 'No embedding: contact sphere in the keypoint vector space'),
-            ('raw_knn', 'No embedding: k-nearest-neighbour vote on the keypoint vector'))
+            ('raw_knn', 'No embedding: k-nearest-neighbour vote on the keypoint vector'),
+            ('geometry', "No embedding: the learned object placed where the frame shows it, against the robot's "
+                         'segments with per-segment contact distances'))
     b = json.loads(bench_json.read_text())
     text = ['# Arm collision prediction (paper Tables 1-2)', '',
             f"Source: {bench_json}. Test frames: {b['eval_n_test']} from {b['eval_test_placements']} object "

@@ -133,7 +133,8 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
     are chosen by 5-fold cross-validation on the training frames (select_contact_model) and the held-out frames are
     embedded out of sample. Keys 'lle_sphere' / 'pca_sphere' (the paper's sphere), 'lle_best' / 'pca_best' (the
     region model with the best cross-validated TPR - FPR), one per region model ('lle_ellipsoid', ...), and the
-    no-embedding baselines 'raw_sphere', 'raw_knn'; each a confusion dict (tp, fn, fp, tn, tpr, fpr) with the
+    no-embedding baselines 'raw_sphere', 'raw_knn' and 'geometry' (the learner's keypoint-distance route on the
+    frame alone); each a confusion dict (tp, fn, fp, tn, tpr, fpr) with the
     chosen hyperparameters and the Spearman of the region's closeness with the true distance. Also returns the
     learner and the test data (for the figures), class balance and timings. `touch`: the label the robot learns
     from and is scored against, 'hand' (the hand's touch sensor, the paper's label) or 'any_part' (a touch sensor
@@ -196,6 +197,19 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
                 result['_lle_sphere_model'] = (emb, region, Y_test)
         result[f'{method}_cv_candidates'] = sel['candidates']
     result.update(raw_vector_baselines(X, c, X_test, c_test, random_state=learner.random_state))
+    # no embedding, the image geometry: the learned object placed where the frame alone shows it, against the
+    # robot's segments at the frame's joints (the keypoint-distance map route); frames that do not place the
+    # object fall back to the LLE region
+    t0 = time.perf_counter()
+    preds = [learner.predict_frames(k, q[None], method='keypoint_distance') for k, q in zip(kps_test, test['joints'])]
+    geometry_ms = 1e3 * (time.perf_counter() - t0) / n_test
+    closeness = np.array([p['closeness'][0] for p in preds])
+    result['geometry'] = dict(confusion(np.array([p['collision'][0] for p in preds]), c_test),
+                              region='per-segment contact distances', margin_quantile=learner.margin_quantile,
+                              objects_learned=learner.n_objects_,
+                              fallback_frames=int(sum(p['method'] != 'keypoint_distance' for p in preds)),
+                              closeness_distance_spearman=float(spearmanr(closeness, d_test)[0]),
+                              predict_ms=geometry_ms)
     result['_learner'], result['_test'], result['_kps_test'], result['_model'] = learner, test, kps_test, model
     result['_train'], result['_kps_train'] = train, kps_train
     return result

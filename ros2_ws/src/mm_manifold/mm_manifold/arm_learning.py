@@ -42,15 +42,20 @@ threshold block far too much). The robot only learns the contact its touch senso
 the hand alone (the paper's label) the map cannot know where the links would hit the object; arm_sim's whole-arm
 contact sense (what a real arm feels through its joint torques) is the label image_embedding uses by default.
 
-`map_method='keypoint_distance'` is another route to the same map (mm_bringup.tune_arm_map / tune_arm_reach compare
-them): keypoints of the frame that neither the background (image spots where keypoints turn up in at least
-`background_share` of the exploration frames) nor the robot at its joint reading (within `robot_margin` px of its
-segments) explains are the object (grouped within `cluster_radius` px, each group at its centroid); the robot's
-segments - pairs of its labels that keep their distance (`rigid_tolerance`), i.e. lie on one rigid part - are
-predicted at each lattice joint vector, and a lattice point is contact when their image distance to the object is
-below the contact distance, a 1-D threshold learned from the exploration frames' touch labels (`distance_quantile`
-of the contact frames' distances, plus `distance_margin` px). An object that never moved during exploration is
-background to this route.
+`map_method='keypoint_distance'` is the other route to the same map (mm_bringup.tune_arm_map / tune_arm_reach compare
+them), which reads the image geometry the learner already has instead of the embedding. The object is what moves
+rigidly but not with the joints: external labels whose mutual offsets stay within `object_tolerance` px form rigid
+groups, and a group whose common shift moves by at least `min_motion` px (median over frames, so a static label
+that is sometimes mismatched does not count) is an object. Its template (each label's position relative to the
+group's shift) is fitted on the exploration frames, so a frame that shows any two of its labels in agreement places
+the whole object, hidden keypoints included: the arm hides the object's keypoints in the very frames that carry the
+contact label, which made distances to the keypoints a frame happens to show useless. The robot's segments - pairs
+of its labels that keep their distance (`rigid_tolerance`), i.e. lie on one rigid part - are predicted at each
+lattice joint vector, and each segment has its own contact distance to the object's centre (the template's mean),
+learned from the touch labels: the `margin_quantile` of that segment's distances over the no-contact frames (near
+zero: the largest distance the object's centre came to it without contact), at most the largest distance over the
+contact frames. Per segment, because the keypoints sit at different depths inside different parts (deep in the
+hand, near the axis of the links); a single distance for all of them blocked a third of the free cells.
 """
 from __future__ import annotations
 
@@ -74,7 +79,7 @@ from mm_manifold.embedding import (REGION_MODELS, ContactQuadric, ContactSphere,
                                    quadratic_features, select_contact_model)
 from mm_manifold.keypoints import FrameKeypoints, KeypointVectorizer, MeanImputer, NearestImputer
 
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 REPRESENTATIONS = ('relative', 'absolute')
 MAP_METHODS = ('keypoint_distance', 'embedding')
 STATIC, SELF, EXTERNAL, UNCLEAR = 0, 1, 2, 3     # label roles
@@ -166,55 +171,74 @@ def rigid_pairs(P: np.ndarray, tolerance: float) -> np.ndarray:
     return np.stack([i, j], 1)[d.std(axis=0) <= tolerance]
 
 
-def background_spots(positions: Sequence[np.ndarray], share: float, spacing: float = 2.0) -> np.ndarray:
-    """(B, 2) image points where keypoints turn up in at least `share` of the frames (positions: one (k, 2) array
-    per frame; counted on a `spacing` px grid, each frame once per cell, over 3 x 3 cells against sub-pixel
-    jitter): the background. The arm covers any one place in a minority of the frames and the object, re-placed
-    every few frames, stays at one place in few of them."""
-    cells = [np.unique(np.floor(np.asarray(p, dtype=float) / spacing).astype(np.int64), axis=0) for p in positions
-             if len(p)]
-    if not cells:
-        return np.zeros((0, 2))
-    allc = np.concatenate(cells)
-    lo = allc.min(0) - 1
-    shape = allc.max(0) - lo + 2
-    count = np.zeros(shape, np.int32)
-    for c in cells:
-        near = np.unique((c[:, None, :] + np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)])[None]
-                          ).reshape(-1, 2), axis=0) - lo
-        count[near[:, 0], near[:, 1]] += 1
-    frequent = np.argwhere(count >= share * len(positions))
-    return (frequent + lo + 0.5) * spacing
-
-
-def object_centres(points: np.ndarray, link: float) -> np.ndarray:
-    """Centroids of the groups of `points` (M, 2) chained by gaps of at most `link` px (0: the points themselves):
-    keypoints spread over one object's texture stand for the object's middle, which its outline surrounds evenly."""
-    if link <= 0 or len(points) < 2:
-        return points
-    pairs = cKDTree(points).query_pairs(link, output_type='ndarray')
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points), len(points)))
-    n, group = connected_components(graph, directed=False)
-    return np.stack([points[group == g].mean(0) for g in range(n)])
-
-
-def segment_distances(P: np.ndarray, pairs: np.ndarray, objects: np.ndarray) -> np.ndarray:
-    """(n,) smallest image distance [px] between the segments `pairs` of the robot's points P (n, S, 2) and the
-    object points objects (n, M, 2) (NaN rows = unseen); inf where no object point is seen."""
+def segment_point_distances(P: np.ndarray, pairs: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(n, K) image distance [px] from each segment `pairs` of the robot's points P (n, S, 2) to the nearest of
+    `points` (n, M, 2) (NaN points = unknown; inf where none is known)."""
     A, B = P[:, pairs[:, 0]], P[:, pairs[:, 1]]                    # (n, K, 2)
     AB = B - A
     length2 = np.maximum(np.einsum('nkc,nkc->nk', AB, AB), 1e-12)
-    best = np.full(len(P), np.inf)
-    for m in range(objects.shape[1]):
-        o = objects[:, m]
+    best = np.full(A.shape[:2], np.inf)
+    for m in range(points.shape[1]):
+        o = points[:, m]
         seen = np.isfinite(o[:, 0])
         if not seen.any():
             continue
         AO = o[seen, None, :] - A[seen]
         t = np.clip(np.einsum('nkc,nkc->nk', AO, AB[seen]) / length2[seen], 0.0, 1.0)
-        gap = np.linalg.norm(AO - t[..., None] * AB[seen], axis=2).min(axis=1)
-        best[seen] = np.minimum(best[seen], gap)
+        best[seen] = np.minimum(best[seen], np.linalg.norm(AO - t[..., None] * AB[seen], axis=2))
     return best
+
+
+def fit_template(P: np.ndarray, iterations: int = 3) -> np.ndarray:
+    """(G, 2) positions of a rigid group's labels relative to its shift, from their positions P (n, G, 2; NaN where
+    unseen): alternately the shift of each frame (median over its labels) and each label's mean relative position, so
+    a label seen only at some of the object's places is not biased towards them."""
+    with np.errstate(invalid='ignore'), warnings.catch_warnings():
+        warnings.simplefilter('ignore', RuntimeWarning)           # frames or labels never seen -> NaN
+        template = np.nanmean(P, axis=0)
+        for _ in range(iterations):
+            shift = np.nanmedian(P - template[None], axis=1)
+            template = np.nanmean(P - shift[:, None], axis=0)
+    return template
+
+
+def group_shifts(P: np.ndarray, template: np.ndarray, tolerance: float) -> np.ndarray:
+    """(n, 2) shift of a rigid group in each frame from its labels' positions P (n, G, 2): the median offset from the
+    template, kept only where at least two labels agree with it within 2 x `tolerance` px (NaN otherwise: one label
+    alone may be a mismatch)."""
+    with np.errstate(invalid='ignore'), warnings.catch_warnings():
+        warnings.simplefilter('ignore', RuntimeWarning)
+        rel = P - template[None]
+        shift = np.nanmedian(rel, axis=1)
+        agree = (np.linalg.norm(rel - shift[:, None], axis=2) <= 2.0 * tolerance).sum(axis=1)
+    shift[agree < 2] = np.nan
+    return shift
+
+
+def rigid_groups(P: np.ndarray, tolerance: float, min_motion: float, min_frames: int = 20) -> list:
+    """Groups (arrays of indices into P's labels) of labels that move together rigidly - the spread (1.4826 x median
+    absolute deviation) of their mutual offset within `tolerance` px over the frames that see both - and whose common
+    shift moves by at least `min_motion` px (median distance from its median): the objects. P (n, L, 2), NaN unseen."""
+    n_labels = P.shape[1]
+    rigid = np.zeros((n_labels, n_labels), bool)
+    for i in range(n_labels):
+        for j in range(i + 1, n_labels):
+            d = P[:, i] - P[:, j]
+            d = d[np.isfinite(d[:, 0])]
+            if len(d) >= min_frames:
+                spread = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+                rigid[i, j] = rigid[j, i] = float(np.hypot(*spread)) <= tolerance
+    _, component = connected_components(coo_matrix(rigid), directed=False)
+    groups = []
+    for g in np.unique(component):
+        members = np.flatnonzero(component == g)
+        if len(members) < 2:
+            continue
+        shift = group_shifts(P[:, members], fit_template(P[:, members]), tolerance)
+        shift = shift[np.isfinite(shift[:, 0])]
+        if len(shift) >= min_frames and np.median(np.linalg.norm(shift - np.median(shift, axis=0), axis=1)) >= min_motion:
+            groups.append(members)
+    return groups
 
 
 def label_roles(raw: np.ndarray, joints: np.ndarray, min_motion: float = 3.0, self_r2: float = 0.9,
@@ -271,8 +295,7 @@ class ArmStateLearner:
                  representation: str = 'relative', self_r2: float = 0.9, external_r2: float = 0.3,
                  min_motion: float = 10.0, recent_frames: int = 5, map_resolution: int = 4,
                  map_threshold: float = 0.5, map_method: str = 'embedding', rigid_tolerance: float = 2.0,
-                 distance_quantile: float = 1.0, distance_margin: float = 0.0, background_share: float = 0.05,
-                 robot_margin: float = 14.0, cluster_radius: float = 30.0):
+                 object_tolerance: float = 3.0, margin_quantile: float = 0.01):
         lim = np.asarray(joint_limits, dtype=float)
         if lim.shape != (2, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
             raise ValueError('joint_limits must be ((lo0, hi0), (lo1, hi1)) with finite lo < hi')
@@ -294,10 +317,9 @@ class ArmStateLearner:
             raise ValueError('map_resolution must be even and >= 2 (the lattice must hold the cell centres)')
         if map_method not in MAP_METHODS:
             raise ValueError(f'map_method must be one of {MAP_METHODS}')
-        if not (0.0 <= rigid_tolerance < 100.0 and 0.5 <= distance_quantile <= 1.0 and -100.0 < distance_margin < 100.0
-                and 0.0 < background_share <= 1.0 and 0.0 <= robot_margin < 100.0):
-            raise ValueError('0 <= rigid_tolerance < 100, 0.5 <= distance_quantile <= 1, -100 < distance_margin < 100, '
-                             '0 < background_share <= 1 and 0 <= robot_margin < 100 are required')
+        if not (0.0 <= rigid_tolerance < 100.0 and 0.0 < object_tolerance < 100.0 and 0.0 <= margin_quantile <= 0.5):
+            raise ValueError('0 <= rigid_tolerance < 100, 0 < object_tolerance < 100 and 0 <= margin_quantile <= 0.5 '
+                             'are required')
         unknown = set(vectorizer_params or {}) - set(_VECTORIZER_PARAMS)
         if unknown:
             raise ValueError(f'unknown vectorizer parameters: {sorted(unknown)}')
@@ -324,13 +346,8 @@ class ArmStateLearner:
         self.map_threshold = float(map_threshold)
         self.map_method = map_method
         self.rigid_tolerance = float(rigid_tolerance)
-        self.distance_quantile = float(distance_quantile)
-        self.distance_margin = float(distance_margin)
-        self.background_share = float(background_share)
-        self.robot_margin = float(robot_margin)
-        if not 0.0 <= cluster_radius < 200.0:
-            raise ValueError('cluster_radius must be in [0, 200)')
-        self.cluster_radius = float(cluster_radius)
+        self.object_tolerance = float(object_tolerance)
+        self.margin_quantile = float(margin_quantile)
 
     def get_params(self) -> Dict[str, object]:
         """The constructor's parameters (JSON-able), as saved with the model."""
@@ -341,9 +358,8 @@ class ArmStateLearner:
                     representation=self.representation, self_r2=self.self_r2, external_r2=self.external_r2,
                     min_motion=self.min_motion, recent_frames=self.recent_frames,
                     map_resolution=self.map_resolution, map_threshold=self.map_threshold, map_method=self.map_method,
-                    rigid_tolerance=self.rigid_tolerance, distance_quantile=self.distance_quantile,
-                    distance_margin=self.distance_margin, background_share=self.background_share,
-                    robot_margin=self.robot_margin, cluster_radius=self.cluster_radius)
+                    rigid_tolerance=self.rigid_tolerance, object_tolerance=self.object_tolerance,
+                    margin_quantile=self.margin_quantile)
 
     # --- fitting ------------------------------------------------------------------------------------------
     def fit(self, keypoints: Sequence[FrameKeypoints], joints, contact, stamps=None) -> 'ArmStateLearner':
@@ -366,7 +382,7 @@ class ArmStateLearner:
             raw = vec.training_vectors_
             self.vectorizer_ = vec
             self._learn_roles(raw, joints)
-            self._fit_distance(keypoints, joints, contact)
+            self._fit_object_geometry(raw, joints, contact)
             V = self._raw_vectors(raw)
             self.imputer_ = NearestImputer(vec.n_impute_neighbors).fit(V)
             X = self.imputer_.transform(V)
@@ -402,46 +418,57 @@ class ArmStateLearner:
         if self.representation == 'relative' and not np.any(self.label_roles_ == SELF):
             raise ValueError('no keypoint label follows the joint readings; cannot build the relative vector')
 
-    def _fit_distance(self, keypoints: Sequence[FrameKeypoints], joints: np.ndarray, contact: np.ndarray) -> None:
-        """The keypoint-distance contact model: rigid pairs of the robot's labels (over a lattice of the joint range,
-        from the joint regression alone), the background spots, the distance of every training frame between the
-        robot's segments where its joints put them and the keypoints the frame shows that neither the background nor
-        the robot explains (the object), and the contact distance: the `distance_quantile` of the contact frames'
-        distances plus `distance_margin` px."""
+    def _fit_object_geometry(self, raw: np.ndarray, joints: np.ndarray, contact: np.ndarray) -> None:
+        """The keypoint-distance contact model (module docstring): rigid pairs of the robot's labels (over a lattice
+        of the joint range, from the joint regression alone), the objects' label groups and templates, and each
+        segment's contact distance to the objects' centres."""
         lattice = np.stack(np.meshgrid(*[np.linspace(lo, hi, 15) for lo, hi in self.joint_limits],
                                        indexing='ij'), -1).reshape(-1, 2)
         self.rigid_pairs_ = rigid_pairs(self._robot_points(lattice), self.rigid_tolerance)
-        self.background_spots_ = background_spots([k.positions for k in keypoints], self.background_share)
-        self.__dict__.pop('_background_tree', None)
-        self.train_distance_ = np.array([self.object_distance(k, q[None])[0] for k, q in zip(keypoints, joints)])
-        known = contact & np.isfinite(self.train_distance_)
-        self.contact_distance_ = (float(np.quantile(self.train_distance_[known], self.distance_quantile))
-                                  + self.distance_margin) if known.any() else float('nan')
+        P = raw.reshape(len(raw), -1, 2)
+        external = self.external_labels_
+        self.object_group_ = np.full(P.shape[1], -1, int)
+        self.object_template_ = np.full((P.shape[1], 2), np.nan)
+        for g, members in enumerate(rigid_groups(P[:, external], self.object_tolerance, self.min_motion)):
+            labels = external[members]
+            self.object_group_[labels] = g
+            self.object_template_[labels] = fit_template(P[:, labels])
+        centres = self._object_centres(P)                                       # (n, G, 2)
+        # a frame counts where it places every object: a hidden one could be the one touched
+        known = (np.isfinite(centres[:, :, 0]).all(axis=1) if centres.shape[1] else np.zeros(len(P), bool))
+        self.segment_margins_ = np.zeros(len(self.rigid_pairs_))
+        if (known & contact).any() and (known & ~contact).any() and len(self.rigid_pairs_):
+            D = segment_point_distances(self._robot_points(joints[known]), self.rigid_pairs_, centres[known])
+            hit = contact[known]
+            cap = float(D[hit].min(axis=1).max())
+            self.segment_margins_ = np.minimum(np.quantile(D[~hit], self.margin_quantile, axis=0), cap)
+        self.object_frames_ = int(known.sum())
 
-    def object_points(self, frame: FrameKeypoints, joints: np.ndarray) -> np.ndarray:
-        """(M, 2) keypoints of `frame` that neither the background (within 2 px of a background spot) nor the robot
-        standing at `joints` (within robot_margin px of its segments) explains: what else is in view."""
-        pts = np.asarray(frame.positions, dtype=float).reshape(-1, 2)
-        if not len(pts):
-            return pts
-        if len(self.background_spots_):
-            if not hasattr(self, '_background_tree'):
-                self._background_tree = cKDTree(self.background_spots_)
-            pts = pts[self._background_tree.query(pts, distance_upper_bound=2.0)[0] == np.inf]
-        if len(pts) and len(self.rigid_pairs_):
-            own = np.repeat(self._robot_points(np.asarray(joints, dtype=float).reshape(1, 2)), len(pts), axis=0)
-            pts = pts[segment_distances(own, self.rigid_pairs_, pts[:, None, :]) > self.robot_margin]
-        return pts
+    @property
+    def n_objects_(self) -> int:
+        return int(self.object_group_.max()) + 1 if len(self.object_group_) else 0
 
-    def object_distance(self, frame: FrameKeypoints, joints: np.ndarray, at=None) -> np.ndarray:
-        """(n,) image distance [px] between the robot's segments with the arm at `at` (n, 2; default: at `joints`)
-        and the object points of `frame` taken with the arm at `joints` (inf: none)."""
-        objects = object_centres(self.object_points(frame, joints), self.cluster_radius)
-        at = np.asarray(joints if at is None else at, dtype=float).reshape(-1, 2)
-        if not len(objects) or not len(self.rigid_pairs_):
-            return np.full(len(at), np.inf)
-        return segment_distances(self._robot_points(at), self.rigid_pairs_,
-                                 np.repeat(objects[None], len(at), axis=0))
+    def _object_centres(self, P: np.ndarray) -> np.ndarray:
+        """(n, G, 2) image position of each object's centre (its template's mean) in frames P (n, L, 2), NaN where
+        the frame does not place it."""
+        out = np.full((len(P), self.n_objects_, 2), np.nan)
+        for g in range(self.n_objects_):
+            labels = np.flatnonzero(self.object_group_ == g)
+            template = self.object_template_[labels]
+            out[:, g] = group_shifts(P[:, labels], template, self.object_tolerance) + template.mean(axis=0)
+        return out
+
+    def object_centres(self, frame: FrameKeypoints, recent: Sequence[FrameKeypoints] = ()) -> np.ndarray:
+        """(G, 2) centre of each learned object as `frame` places it (an object it does not place: from the newest
+        of `recent` (oldest first) that does; NaN if none does)."""
+        out = np.full((self.n_objects_, 2), np.nan)
+        for f in [frame] + list(recent)[::-1][:self.recent_frames]:
+            hole = ~np.isfinite(out[:, 0])
+            if not hole.any():
+                break
+            seen = self._object_centres(self.vectorizer_.vectorize(f).reshape(1, -1, 2))[0]
+            out[hole] = seen[hole]
+        return out
 
     def _robot_points(self, joints: np.ndarray) -> np.ndarray:
         """(n, S, 2) image positions of the robot's own labels where the joint regression puts them."""
@@ -563,16 +590,16 @@ class ArmStateLearner:
         return np.stack(np.meshgrid(a, b, indexing='ij'), -1)
 
     def predict_frames(self, frame: FrameKeypoints, joints: np.ndarray, recent: Sequence[FrameKeypoints] = (),
-                       method: Optional[str] = None, frame_joints=None) -> Dict[str, np.ndarray]:
+                       method: Optional[str] = None) -> Dict[str, np.ndarray]:
         """Predicted states of the frames the camera would see with the arm at `joints` (n, 2) and everything else
         as in `frame` (hidden labels from `recent`, oldest first): the robot's labels where the joint regression
         puts them. `method` (default map_method): 'embedding' embeds the predicted vectors and applies the contact
-        region (closeness >= map_threshold is contact); 'keypoint_distance' measures the image distance between the
-        robot's predicted rigid segments and the keypoints of `frame` that neither the background nor the robot at
-        `frame_joints` (its joint reading in that frame; required) explains (closeness 1 - distance / contact
-        distance, >= 0 is contact). Returns dict(closeness (n,), collision (n,), distance (n,) px or None,
-        embedding (n, k) or None, external_seen (labels of the object side known), object_points (keypoints taken
-        as the object; -1 for 'embedding'))."""
+        region (closeness >= map_threshold is contact); 'keypoint_distance' places the learned objects where the
+        frames show them and compares the robot's predicted segments with their centres (closeness = largest
+        1 - distance / contact distance over the segments, >= 0 is contact); where the frames place no object it
+        falls back to 'embedding'. Returns dict(closeness (n,), collision (n,), clearance (n,) px or None,
+        embedding (n, k) or None, external_seen (labels of the object side known), objects_placed (learned objects
+        the frames place; -1 for 'embedding'), method (the route taken))."""
         if not hasattr(self, 'region_'):
             raise RuntimeError('ArmStateLearner is not fitted')
         method = method or self.map_method
@@ -584,35 +611,38 @@ class ArmStateLearner:
         raw = self.vectorizer_.vectorize(frame)
         filled = self._fill_from_recent(raw, [self.vectorizer_.vectorize(r) for r in recent]).reshape(-1, 2)
         seen = int(np.isfinite(filled[self.external_labels_, 0]).sum())
-        if method == 'keypoint_distance' and np.isfinite(self.contact_distance_):
-            if frame_joints is None:
-                raise ValueError("the 'keypoint_distance' map needs the joint reading of the frame")
-            d = self.object_distance(frame, frame_joints, at=q)
-            close = np.maximum(1.0 - d / max(self.contact_distance_, 1e-6), -1e6)
-            return dict(closeness=close, collision=close >= 0.0, distance=d, embedding=None, external_seen=seen,
-                        object_points=len(self.object_points(frame, frame_joints)))
+        if method == 'keypoint_distance':
+            centres = self.object_centres(frame, recent)
+            placed = centres[np.isfinite(centres[:, 0])]
+            if len(placed) and len(self.rigid_pairs_):
+                D = segment_point_distances(self._robot_points(q), self.rigid_pairs_,
+                                            np.repeat(placed[None], len(q), axis=0))
+                clearance = (D - self.segment_margins_[None]).min(axis=1)
+                close = np.max(1.0 - D / np.maximum(self.segment_margins_, 1e-6)[None], axis=1)
+                return dict(closeness=np.maximum(close, -1e6), collision=clearance < 0.0, clearance=clearance,
+                            embedding=None, external_seen=seen, objects_placed=len(placed), method=method)
         P = np.repeat(filled[None], len(q), axis=0)
         P[:, self.self_labels_] = self._robot_points(q)
         Y = self.lle_transform(self.imputer_.transform(self._vectors_of_positions(P)))
         close = self.region_.closeness(Y)
-        return dict(closeness=close, collision=close >= self.map_threshold, distance=None, embedding=Y,
-                    external_seen=seen, object_points=-1)
+        return dict(closeness=close, collision=close >= self.map_threshold, clearance=None, embedding=Y,
+                    external_seen=seen, objects_placed=-1, method='embedding')
 
     def predict_collision_map(self, frame: FrameKeypoints, recent: Sequence[FrameKeypoints] = (),
-                              method: Optional[str] = None, frame_joints=None) -> Dict[str, object]:
+                              method: Optional[str] = None) -> Dict[str, object]:
         """Collision map for the object placement seen in `frame` before moving (module docstring): dict(
         collision (rows, cols) bool, closeness (rows, cols) float (largest over the cell's cross of lattice
         points), lattice_joints (R, C, 2), lattice_closeness (R, C), external_labels (learned count),
-        external_seen (of them known in frame + recent), new_frames (1 + len(recent)))."""
+        external_seen (of them known in frame + recent), objects_placed, method (route taken), new_frames
+        (1 + len(recent)))."""
         lattice = self.map_lattice()
-        pred = self.predict_frames(frame, lattice.reshape(-1, 2), recent, method, frame_joints)
+        pred = self.predict_frames(frame, lattice.reshape(-1, 2), recent, method)
         close = pred['closeness'].reshape(lattice.shape[:2])
         hit = pred['collision'].reshape(lattice.shape[:2])
         collision, closeness = cross_max(hit, close, self.grid_shape, self.map_resolution)
         return dict(collision=collision, closeness=closeness, lattice_joints=lattice, lattice_closeness=close,
                     external_labels=int(len(self.external_labels_)), external_seen=pred['external_seen'],
-                    object_points=pred['object_points'],
-                    new_frames=1 + len(recent))
+                    objects_placed=pred['objects_placed'], method=pred['method'], new_frames=1 + len(recent))
 
     # --- persistence (np.savez + JSON, no pickle) ---------------------------------------------------------
     def save(self, path: os.PathLike) -> None:
@@ -640,8 +670,8 @@ class ArmStateLearner:
             train_vectors=self.train_vectors_, train_joints=self.train_joints_, train_contact=self.train_contact_,
             train_stamps=self.train_stamps_, label_roles=self.label_roles_, joint_coef=self.joint_coef_,
             label_r2=self.label_r2_, label_motion=self.label_motion_, label_mean=self.label_mean_,
-            rigid_pairs=self.rigid_pairs_, train_distance=self.train_distance_, background_spots=self.background_spots_,
-            contact_distance=np.array(self.contact_distance_),
+            rigid_pairs=self.rigid_pairs_, object_group=self.object_group_, object_template=self.object_template_,
+            segment_margins=self.segment_margins_, object_frames=np.array(self.object_frames_),
             imputer_vectors=np.where(self.imputer_.observed_, self.imputer_.values_, np.nan))
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
@@ -697,8 +727,13 @@ class ArmStateLearner:
         if not (len(self.label_roles_) == len(self.joint_coef_) == len(self.label_mean_) == vec.n_labels_):
             raise ModelFileError('label arrays do not match the number of labels')
         self.rigid_pairs_ = a['rigid_pairs'].astype(int).reshape(-1, 2)
-        self.train_distance_, self.contact_distance_ = a['train_distance'], float(a['contact_distance'])
-        self.background_spots_ = a['background_spots'].astype(float).reshape(-1, 2)
+        self.object_group_ = a['object_group'].astype(int)
+        self.object_template_ = a['object_template'].astype(float).reshape(-1, 2)
+        self.segment_margins_ = a['segment_margins'].astype(float).ravel()
+        self.object_frames_ = int(a['object_frames'])
+        if not (len(self.object_group_) == len(self.object_template_) == vec.n_labels_
+                and len(self.segment_margins_) == len(self.rigid_pairs_)):
+            raise ModelFileError('object or segment arrays do not match the labels or the rigid pairs')
         if self.rigid_pairs_.size and not 0 <= self.rigid_pairs_.min() <= self.rigid_pairs_.max() < len(
                 self.self_labels_):
             raise ModelFileError('rigid pairs name labels the robot does not have')

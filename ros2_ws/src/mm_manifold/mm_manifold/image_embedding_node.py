@@ -143,21 +143,20 @@ class ImageEmbeddingNode(Node):
                           declare(self, 'joint1_limits', [0.0, 2.2], 'shoulder_pitch [min, max] rad',
                                   read_only=True)),
             map_method=declare(self, 'map_method', 'embedding', "Collision map of a new placement: "
-                               "'keypoint_distance' (robot's predicted keypoints against the unexplained ones seen "
-                               "now, contact distance from the touch labels) or 'embedding' (the predicted frame "
-                               "embedded, the contact region applied; the paper's route)", read_only=True,
+                               "'keypoint_distance' (the learned object placed where the frame shows it, against "
+                               "the robot's predicted segments with the contact distances learned from the touch "
+                               "labels) or 'embedding' (the predicted frame embedded, the contact region applied; "
+                               "the paper's route)", read_only=True,
                                additional_constraints='one of keypoint_distance, embedding'),
             map_threshold=declare(self, 'map_threshold', 0.5, 'Closeness to the contact region at or above which a '
                                   'predicted frame counts as contact (embedding route; chosen by mm_bringup.tune_arm)',
                                   min_value=-9.9, max_value=9.9, read_only=True),
-            robot_margin=declare(self, 'robot_margin', 14.0, 'px: keypoints this close to the robot\'s segments '
-                                 'are the robot\'s own (keypoint_distance)', min_value=0.0, max_value=99.0,
-                                 read_only=True),
-            cluster_radius=declare(self, 'cluster_radius', 30.0, 'px: unexplained keypoints chained this close '
-                                   'count as one object at their centroid (0: each keypoint)', min_value=0.0,
-                                   max_value=199.0, read_only=True),
-            distance_margin=declare(self, 'distance_margin', 0.0, 'px added to the learned contact distance '
-                                    '(keypoint_distance)', min_value=-99.0, max_value=99.0, read_only=True),
+            object_tolerance=declare(self, 'object_tolerance', 3.0, 'px: keypoint labels whose mutual offsets stay '
+                                     'this steady move as one rigid object (keypoint_distance)', min_value=0.1,
+                                     max_value=99.0, read_only=True),
+            margin_quantile=declare(self, 'margin_quantile', 0.01, "Share of the no-contact frames allowed inside a "
+                                    "segment's contact distance (keypoint_distance; chosen by mm_bringup.tune_arm_map)",
+                                    min_value=0.0, max_value=0.5, read_only=True),
         )
         self.contact_label = declare(self, 'contact_label', 'arm', "Which contact sense labels the frames: 'arm' "
                                      "(any arm part, from joint torques) or 'hand' (the hand's touch sensor, the "
@@ -178,7 +177,6 @@ class ImageEmbeddingNode(Node):
         self.frames: Dict[str, list] = {'kp': [], 'joints': [], 'contact': [], 'stamp': []}
         self.pending: Dict[int, dict] = {}
         self.recent = collections.OrderedDict()     # stamp -> keypoints of the newest frames
-        self.recent_joints: Dict[int, np.ndarray] = {}      # stamp -> joint reading of the newest frames
         self.known_stamps = set()
         self.map_request: Optional[int] = None
         self.maps_published = 0
@@ -273,14 +271,9 @@ class ImageEmbeddingNode(Node):
             reject_input(self, 'arm/joint_states', f'need 2 finite positions, got {list(msg.position)}')
             return
         stamp = stamp_ns(msg.header)
-        self.recent_joints[stamp] = np.asarray(msg.position, dtype=float)
-        if len(self.recent_joints) > 2 * RECENT_FRAMES:
-            for old in sorted(self.recent_joints)[:len(self.recent_joints) - 2 * RECENT_FRAMES]:
-                del self.recent_joints[old]
-        self._serve_map_request()
         entry = self._entry(stamp)
         if entry is not None:
-            entry['joints'] = self.recent_joints[stamp]
+            entry['joints'] = np.asarray(msg.position, dtype=float)
             self._complete(stamp)
 
     def _on_contact(self, msg: Contact) -> None:
@@ -353,22 +346,18 @@ class ImageEmbeddingNode(Node):
         """Build the requested map once the model and a frame at or after the requested stamp are there."""
         if self.map_request is None or self.model is None:
             return
-        later = [s for s in self.recent if s >= self.map_request and self._mappable(s)]
+        later = [s for s in self.recent if s >= self.map_request]
         if not later:
             return
         self.map_request = None
         self._publish_map(min(later))
-
-    def _mappable(self, stamp: int) -> bool:
-        """The keypoint-distance map also needs the frame's joint reading (where the robot stands in the image)."""
-        return self.model.map_method != 'keypoint_distance' or stamp in self.recent_joints
 
     def _publish_map(self, stamp: int) -> None:
         stamps = list(self.recent)
         i = stamps.index(stamp)
         recent = [self.recent[s] for s in stamps[max(0, i - self.map_recent_frames):i]]
         try:
-            pred = self.model.predict_collision_map(self.recent[stamp], recent, frame_joints=self.recent_joints.get(stamp))
+            pred = self.model.predict_collision_map(self.recent[stamp], recent)
             collision = np.asarray(pred['collision'], dtype=bool)
             closeness = np.asarray(pred['closeness'], dtype=float)
             if collision.shape != self.model.grid_shape or closeness.shape != collision.shape:
@@ -388,7 +377,7 @@ class ImageEmbeddingNode(Node):
         self.maps_published += 1
         self.get_logger().info(f'collision map {self.maps_published} of frame {stamp * 1e-9:.3f} s from '
                                f'{1 + len(recent)} frame(s) of the current scene: {int(collision.sum())} '
-                               f"collision cells ({self.model.map_method}, {pred['object_points']} object points)")
+                               f"collision cells ({pred['method']}, {pred['objects_placed']} object(s) placed)")
 
     # --- learning ---------------------------------------------------------------------------------------------
     @property
@@ -458,10 +447,10 @@ class ImageEmbeddingNode(Node):
         self.get_logger().info(
             f'fit {self.fits_done}: {learner.n_frames_} frames, {learner.vectorizer_.n_labels_} labels, '
             f"{int(learner.train_contact_.sum())} contact frames, contact region {v['model']} "
-            f"(cross-validated TPR {v['cv_tpr']:.3f} FPR {v['cv_fpr']:.3f})")
-        mappable = [s for s in self.recent if self._mappable(s)]
-        if mappable:
-            self._publish_map(mappable[-1])       # the newest frame: the scene as it is now
+            f"(cross-validated TPR {v['cv_tpr']:.3f} FPR {v['cv_fpr']:.3f}), {learner.n_objects_} object(s) "
+            f"learned, placed in {learner.object_frames_} frames")
+        if self.recent:
+            self._publish_map(next(reversed(self.recent)))       # the newest frame: the scene as it is now
         self._serve_map_request()
         self._maybe_fit()
 

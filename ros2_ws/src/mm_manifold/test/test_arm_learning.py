@@ -1,5 +1,7 @@
 """ArmStateLearner: label roles from the joints, collision maps (over exploration frames and predicted before moving for
 an unseen object placement), fast out-of-sample maps, saving/loading without pickle."""
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_cdt
@@ -97,8 +99,7 @@ def test_save_load_round_trip_and_corrupt_files(fitted, tmp_path):
         np.testing.assert_array_equal(getattr(loaded, name), getattr(learner, name))
     assert loaded.get_params() == learner.get_params()
     for method in ('embedding', 'keypoint_distance'):
-        m1, m2 = (m.predict_collision_map(new_kps[0], method=method, frame_joints=[-2.0, 1.0])
-                  for m in (learner, loaded))
+        m1, m2 = (m.predict_collision_map(new_kps[0], method=method) for m in (learner, loaded))
         np.testing.assert_array_equal(m1['collision'], m2['collision'])
         np.testing.assert_allclose(m1['closeness'], m2['closeness'], atol=1e-9)
     data = path.read_bytes()
@@ -225,30 +226,43 @@ def test_predict_collision_map_for_an_unseen_placement(moving):
     assert np.isfinite(learner.transform(frame, recent=[frame])['closeness'])
 
 
-def test_keypoint_distance_map_sees_the_object_where_the_frame_shows_it(moving):
-    """The keypoint-distance route: keypoints neither the background nor the robot explains are the object; the
-    robot's predicted segments come close to them exactly where the arm is near the object."""
+def test_keypoint_distance_map_places_the_learned_object_where_the_frame_shows_it(moving):
+    """The keypoint-distance route: the labels that move rigidly together but not with the joints are one object;
+    a frame that shows two of them places the whole object, and the robot's predicted segments come within their
+    learned contact distances exactly where the arm is near it. A frame that does not show the object falls back to
+    the embedding."""
     model, learner = moving
-    assert np.isfinite(learner.contact_distance_) and len(learner.rigid_pairs_) > len(learner.self_labels_)
+    assert learner.n_objects_ == 1 and (learner.object_group_ == 0).sum() >= 3
+    assert np.all(learner.label_roles_[learner.object_group_ == 0] == EXTERNAL)
+    assert len(learner.rigid_pairs_) > len(learner.self_labels_) and np.all(learner.segment_margins_ >= 0.0)
     ext = KeypointExtractor()
     rng = np.random.default_rng(98)
-    recall = []
+    recall, bias = [], []
     for _ in range(3):
         model.set_object_position(model.random_object_position(rng))
         far = max(model.sample_joints(50, rng), key=model.hand_object_distance)
         frame = ext(model.render(far))
-        objects = learner.object_points(frame, far)
-        assert len(objects) >= 2
-        # most unexplained keypoints lie on the object (its radius is 20 px)
-        assert np.median(np.linalg.norm(objects - model.object_position_, axis=1)) < model.object_radius + 5
-        out = learner.predict_collision_map(frame, method='keypoint_distance', frame_joints=far)
-        assert out['object_points'] == len(objects) and out['collision'].shape == (8, 12)
+        centre = learner.object_centres(frame)
+        assert centre.shape == (1, 2) and np.all(np.isfinite(centre))
+        bias.append(centre[0] - model.object_position_)
+        out = learner.predict_collision_map(frame, method='keypoint_distance')
+        assert out['method'] == 'keypoint_distance' and out['objects_placed'] == 1
+        assert out['collision'].shape == (8, 12)
         lattice = out['lattice_joints'].reshape(-1, 2)
-        gap = model.part_clearances(lattice).min(axis=1).reshape(out['lattice_closeness'].shape)
-        close = out['lattice_closeness']
-        recall.append(np.mean(close[gap < 0.0] >= 0.0))           # lattice points in contact predicted as such
-        assert np.median(close[gap > 60]) < np.median(close[gap < 0.0])
-    print('recall of contact lattice points', recall)
-    assert np.mean(recall) > 0.8, recall        # the fixture learned from the hand's touch alone
-    with pytest.raises(ValueError, match='joint reading'):
-        learner.predict_collision_map(frame, method='keypoint_distance')
+        hand_gap = np.array([model.hand_object_distance(q) for q in lattice]) - model.contact_distance
+        gap = model.part_clearances(lattice).min(axis=1)
+        close = out['lattice_closeness'].ravel()
+        recall.append(np.mean(close[hand_gap < 0.0] >= 0.0))      # learned from the hand's touch sensor
+        assert np.median(close[gap > 60]) < 0.0 < np.median(close[hand_gap < -10])
+    # the template's centre sits at one place on the object wherever the object is
+    assert np.ptp(np.array(bias), axis=0).max() < 2.0 and np.linalg.norm(bias[0]) < model.object_radius
+    print('recall of hand-contact lattice points', recall)
+    assert np.mean(recall) > 0.9, recall
+    hidden = np.linalg.norm(frame.positions - model.object_position_, axis=1) > model.object_radius + 4
+    blind = dataclasses.replace(frame, positions=frame.positions[hidden], descriptors=frame.descriptors[hidden])
+    assert np.all(np.isnan(learner.object_centres(blind)))
+    out = learner.predict_collision_map(blind, method='keypoint_distance')
+    assert out['method'] == 'embedding' and out['objects_placed'] == -1
+    # an earlier frame of the same scene places it
+    out = learner.predict_collision_map(blind, recent=[frame], method='keypoint_distance')
+    assert out['method'] == 'keypoint_distance' and out['new_frames'] == 2

@@ -7,7 +7,8 @@ Parts:
   (TEST_SEED), never seen in training; the same frames for every method. Keys `lle_sphere_*` / `pca_sphere_*` (the
   paper's sphere: centre = mean of the contact frames, radius by cross-validation on the training frames),
   `lle_best_*` / `pca_best_*` (the region model with the best cross-validated TPR - FPR among sphere, Mahalanobis
-  ellipsoid and quadric), `raw_sphere_*` / `raw_knn_*` (no embedding), each with tp / fn / fp / tn / tpr / fpr, and
+  ellipsoid and quadric), `raw_sphere_*` / `raw_knn_*` (no embedding), `geometry_*` (no embedding: the learned object
+  placed where the test frame shows it against the robot's segments, the keypoint-distance map route), each with tp / fn / fp / tn / tpr / fpr, and
   the class balance (`eval_*_contact`). The learner's settings (representation, LLE method, dimensions) come from
   mm_bringup.tune_arm, run on scenes and seeds disjoint from these.
 - Planning before moving (`plan_*`): a learner fitted on the same exploration frames labelled by the whole-arm
@@ -20,9 +21,9 @@ Parts:
   neighbours' centres; also against the hand alone), and the DP plan (mm_planner.value_iteration, the paper's
   rewards, and dp_planner's default clearance reward) is executed cell by cell; success = the goal cell centre is
   reached and no arm part touches the object anywhere along the executed motion (checked every 0.02 rad). The same
-  is measured with the keypoint-distance route (`plan_keypoint_distance_*`: the robot's predicted keypoints against
-  the keypoints of the frame that neither background nor robot explains) and for the tables' learner, which learned
-  from the hand's touch sensor alone (`plan_hand_touch_*`).
+  is measured with the keypoint-distance route (`plan_keypoint_distance_*`: the learned object placed where the frame
+  shows it, against the robot's predicted segments with per-segment contact distances) and for the tables' learner,
+  which learned from the hand's touch sensor alone (`plan_hand_touch_*`).
 - Synthetic check (Section 3.4): 1000 frames, 10 object + 10 hand + 5 background keypoints, object and hand both
   uniform, 10 % removed; best |Spearman| of one LLE / PCA axis with the hand-object distance.
 """
@@ -142,10 +143,11 @@ def plan_before_moving(learner, model, n_placements: int = PLACEMENTS, seed: int
             continue
         frame = extractor(model.render(grid.centre(task[0])))
         t0 = time.perf_counter()
-        pred = learner.predict_collision_map(frame, method=method, frame_joints=grid.centre(task[0]))
+        pred = learner.predict_collision_map(frame, method=method)
         map_ms.append(1e3 * (time.perf_counter() - t0))
         row = dict(object=[float(v) for v in model.object_position_], start=list(task[0]), goal=list(task[1]),
-                   new_frames=pred['new_frames'], external_seen=pred['external_seen'], object_points=pred['object_points'],
+                   new_frames=pred['new_frames'], external_seen=pred['external_seen'], objects_placed=pred['objects_placed'],
+                   map_route=pred['method'],
                    predicted_blocked=int(pred['collision'].sum()), truth_blocked=int(truth_any.sum()))
         for key, truth in (('any', truth_any), ('hand', truth_hand)):
             cells = _cells(pred['collision'], truth)
@@ -204,7 +206,7 @@ def tables_result(ev: Dict[str, object]) -> Dict[str, object]:
     """Flat JSON keys of an evaluate_collision_prediction result."""
     out: Dict[str, object] = {}
     for key in ('lle_best', 'lle_sphere', 'lle_ellipsoid', 'lle_quadric', 'pca_best', 'pca_sphere', 'pca_ellipsoid',
-                'pca_quadric', 'raw_sphere', 'raw_knn'):
+                'pca_quadric', 'raw_sphere', 'raw_knn', 'geometry'):
         for k, v in ev[key].items():
             if isinstance(v, (int, float, str, bool)) or v is None:
                 out[f'{key}_{k}'] = v
@@ -230,7 +232,8 @@ def run(output_dir: Path, quick: bool) -> dict:
     n_plan = 8 if quick else PLACEMENTS
     whole_arm = ArmStateLearner(**LEARNER_PARAMS).fit(ev['_kps_train'], ev['_train']['joints'],
                                                        ev['_train']['any_contact'])
-    out['plan_contact_distance_px'] = whole_arm.contact_distance_
+    out['plan_segment_margins_px'] = dict(zip(('min', 'median', 'max'), np.percentile(
+        whole_arm.segment_margins_, [0, 50, 100]).tolist())) if len(whole_arm.segment_margins_) else None
     out.update(plan_before_moving(whole_arm, ev['_model'], n_plan, extractor=extractor))
     for prefix, planner_learner, method in (('plan_keypoint_distance_', whole_arm, 'keypoint_distance'),
                                             ('plan_hand_touch_', learner, None)):
