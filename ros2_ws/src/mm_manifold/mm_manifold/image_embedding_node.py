@@ -142,7 +142,7 @@ class ImageEmbeddingNode(Node):
                                   read_only=True),
                           declare(self, 'joint1_limits', [0.0, 2.2], 'shoulder_pitch [min, max] rad',
                                   read_only=True)),
-            map_method=declare(self, 'map_method', 'embedding', "Collision map of a new placement: "
+            map_method=declare(self, 'map_method', 'keypoint_distance', "Collision map of a new placement: "
                                "'keypoint_distance' (the learned object placed where the frame shows it, against "
                                "the robot's predicted segments with the contact distances learned from the touch "
                                "labels) or 'embedding' (the predicted frame embedded, the contact region applied; "
