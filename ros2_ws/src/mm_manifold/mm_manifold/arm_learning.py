@@ -596,8 +596,8 @@ class ArmStateLearner:
         puts them. `method` (default map_method): 'embedding' embeds the predicted vectors and applies the contact
         region (closeness >= map_threshold is contact); 'keypoint_distance' places the learned objects where the
         frames show them and compares the robot's predicted segments with their centres (closeness = largest
-        1 - distance / contact distance over the segments, >= 0 is contact); where the frames place no object it
-        falls back to 'embedding'. Returns dict(closeness (n,), collision (n,), clearance (n,) px or None,
+        1 - distance / contact distance over the segments, >= 0 is contact); where the frames place no object, or
+        no contact distance was learned, it falls back to 'embedding'. Returns dict(closeness (n,), collision (n,), clearance (n,) px or None,
         embedding (n, k) or None, external_seen (labels of the object side known), objects_placed (learned objects
         the frames place; -1 for 'embedding'), method (the route taken))."""
         if not hasattr(self, 'region_'):
@@ -614,7 +614,8 @@ class ArmStateLearner:
         if method == 'keypoint_distance':
             centres = self.object_centres(frame, recent)
             placed = centres[np.isfinite(centres[:, 0])]
-            if len(placed) and len(self.rigid_pairs_):
+            # no contact distance learned (no contact frame placed the object): the route knows nothing to avoid
+            if len(placed) and len(self.rigid_pairs_) and self.segment_margins_.any():
                 D = segment_point_distances(self._robot_points(q), self.rigid_pairs_,
                                             np.repeat(placed[None], len(q), axis=0))
                 clearance = (D - self.segment_margins_[None]).min(axis=1)
