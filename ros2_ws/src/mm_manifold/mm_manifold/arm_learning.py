@@ -236,7 +236,8 @@ def rigid_groups(P: np.ndarray, tolerance: float, min_motion: float, min_frames:
             continue
         shift = group_shifts(P[:, members], fit_template(P[:, members]), tolerance)
         shift = shift[np.isfinite(shift[:, 0])]
-        if len(shift) >= min_frames and np.median(np.linalg.norm(shift - np.median(shift, axis=0), axis=1)) >= min_motion:
+        motion = np.median(np.linalg.norm(shift - np.median(shift, axis=0), axis=1)) if len(shift) else 0.0
+        if len(shift) >= min_frames and motion >= min_motion:
             groups.append(members)
     return groups
 
@@ -597,8 +598,8 @@ class ArmStateLearner:
         region (closeness >= map_threshold is contact); 'keypoint_distance' places the learned objects where the
         frames show them and compares the robot's predicted segments with their centres (closeness = largest
         1 - distance / contact distance over the segments, >= 0 is contact); where the frames place no object, or
-        no contact distance was learned, it falls back to 'embedding'. Returns dict(closeness (n,), collision (n,), clearance (n,) px or None,
-        embedding (n, k) or None, external_seen (labels of the object side known), objects_placed (learned objects
+        no contact distance was learned, it falls back to 'embedding'. Returns dict(closeness (n,), collision (n,),
+        clearance (n,) px or None, embedding (n, k) or None, external_seen (labels of the object side known), objects_placed (learned objects
         the frames place; -1 for 'embedding'), method (the route taken))."""
         if not hasattr(self, 'region_'):
             raise RuntimeError('ArmStateLearner is not fitted')
