@@ -5,6 +5,7 @@ what the controller evaluates from the message is what the learner fitted. Pure 
 """
 from __future__ import annotations
 
+from functools import lru_cache
 from itertools import combinations_with_replacement
 from math import comb
 from typing import List, Optional, Tuple
@@ -17,14 +18,32 @@ def n_polynomial_features(degree: int, dim: int) -> int:
     return comb(degree + dim, dim)
 
 
+@lru_cache(maxsize=None)
+def _monomials(degree: int, dim: int) -> Tuple[Tuple[int, ...], ...]:
+    """The variables multiplied in each feature, in the order of the features (the constant first)."""
+    return tuple(combo for d in range(degree + 1) for combo in combinations_with_replacement(range(dim), d))
+
+
 def polynomial_features(Y: np.ndarray, degree: int, center: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """1, y_i, y_i y_j, ... of the standardised y, up to `degree`."""
     Z = (np.atleast_2d(Y) - center) / scale
     cols = [np.ones(len(Z))]
-    for d in range(1, degree + 1):
-        for combo in combinations_with_replacement(range(Z.shape[1]), d):
-            cols.append(np.prod(Z[:, combo], axis=1))
+    for combo in _monomials(degree, Z.shape[1])[1:]:
+        cols.append(np.prod(Z[:, combo], axis=1))
     return np.stack(cols, axis=1)
+
+
+def polynomial_feature_gradients(Y: np.ndarray, degree: int, center: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """(n, features, dim) derivatives of polynomial_features with respect to y (for analytic sensitivities)."""
+    Z = (np.atleast_2d(Y) - center) / scale
+    monomials = _monomials(degree, Z.shape[1])
+    G = np.zeros((len(Z), len(monomials), Z.shape[1]))
+    for f, combo in enumerate(monomials):
+        for k in set(combo):
+            rest = list(combo)
+            rest.remove(k)
+            G[:, f, k] = combo.count(k) * np.prod(Z[:, rest], axis=1) / scale[k]
+    return G
 
 
 class PolynomialField:

@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 from typing import List, Optional
 
 import numpy as np
-from mm_common.learned_fields import deeper_fallbacks, polynomial_features, ranked_routes
+from mm_common.learned_fields import (deeper_fallbacks, polynomial_feature_gradients, polynomial_features,
+                                      ranked_routes)
 from scipy.optimize import least_squares
 
 from mm_manifold.jacobian import PolynomialJacobianField
@@ -73,6 +74,40 @@ def integrate_batch(field, starts: np.ndarray, commands: np.ndarray, dt: float,
     return traj
 
 
+def reentry_sensitivity(field: ExtrapolatedField, starts: np.ndarray, commands: np.ndarray, dt: float,
+                        bounds: Optional[np.ndarray] = None):
+    """End points of integrate_batch (same arithmetic) and their derivatives with respect to field.correction,
+    (E, dy, features * dy * du), propagated along the Euler steps (forward sensitivities): the re-entry fit's exact
+    Jacobian at the cost of one integration, where finite differences need one per parameter. The correction must
+    apply everywhere (no box)."""
+    if field.box is not None:
+        raise ValueError('sensitivities need a correction that applies everywhere (box None)')
+    base = field.base
+    E, T, du = commands.shape
+    dy = starts.shape[1]
+    F = base.theta_.shape[0]
+    weights = base.theta_ + field.correction
+    y = starts.copy()
+    S = np.zeros((E, dy, F * dy * du))
+    B = np.zeros((E, dy, F, dy, du))
+    for t in range(T):
+        u = commands[:, t]
+        P = polynomial_features(y, base.degree, base.center_, base.scale_)
+        J = (np.einsum('nf,fij->nij', P, base.theta_)
+             + np.ones(E)[:, None, None] * np.einsum('nf,fij->nij', P, field.correction))
+        G = polynomial_feature_gradients(y, base.degree, base.center_, base.scale_)
+        A = np.einsum('nfk,fij,nj->nik', G, weights, u)
+        for i in range(dy):
+            B[:, i, :, i, :] = P[:, :, None] * u[:, None, :]
+        S = S + dt * (A @ S + B.reshape(E, dy, -1))
+        y = y + np.einsum('nij,nj->ni', J, u) * dt
+        if bounds is not None:
+            inside = (y > bounds[0]) & (y < bounds[1])
+            y = np.clip(y, bounds[0], bounds[1])
+            S = S * inside[:, :, None]
+    return y, S
+
+
 class VirtualSensorSpace:
     """Extrapolated, re-entry-corrected coordinates of sensor 1, and their overlap with sensor 2.
 
@@ -114,13 +149,26 @@ class VirtualSensorSpace:
             starts, commands, ends = self._pack(closed)
             scale = np.abs(in_range_field.theta_).mean() + 1e-12
 
-            def residuals(delta):
-                self.field_.correction = delta.reshape(shape) * scale
-                pred = integrate_batch(self.field_, starts, commands, self.dt, self.bounds)[:, -1]
-                return np.concatenate([(pred - ends).ravel(), np.sqrt(self.prior_weight) * delta])
+            n = int(np.prod(shape))
+            prior = np.sqrt(self.prior_weight)
+            last = {}
 
-            before = residuals(np.zeros(int(np.prod(shape))))[:ends.size]
-            solution = least_squares(residuals, np.zeros(int(np.prod(shape))), method='trf', max_nfev=60)
+            def reentry(delta):
+                # fun and jac are asked at the same points: one integration serves both.
+                if last.get('delta') is None or not np.array_equal(last['delta'], delta):
+                    self.field_.correction = delta.reshape(shape) * scale
+                    pred, sensitivity = reentry_sensitivity(self.field_, starts, commands, self.dt, self.bounds)
+                    last.update(delta=delta.copy(), pred=pred, sensitivity=sensitivity * scale)
+                return last['pred'], last['sensitivity']
+
+            def residuals(delta):
+                return np.concatenate([(reentry(delta)[0] - ends).ravel(), prior * delta])
+
+            def jacobian(delta):
+                return np.vstack([reentry(delta)[1].reshape(-1, n), prior * np.eye(n)])
+
+            before = residuals(np.zeros(n))[:ends.size]
+            solution = least_squares(residuals, np.zeros(n), jac=jacobian, method='trf', max_nfev=60)
             self.field_.correction = solution.x.reshape(shape) * scale
             after = (self.predict_reentry(closed) - ends).ravel()
             self.reentry_rms_before_ = float(np.sqrt(np.mean(before.reshape(-1, ends.shape[1]) ** 2) * ends.shape[1]))

@@ -15,7 +15,8 @@ from mm_manifold.jacobian import PolynomialJacobianField
 from mm_manifold.sensor_manifold import (SENSOR1, SENSOR2, SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL,
                                          SensorManifoldModel, StateTracker, find_excursions, group_in_range,
                                          refit_problem)
-from mm_manifold.virtual_space import Excursion, VirtualSensorSpace
+from mm_manifold.virtual_space import (Excursion, ExtrapolatedField, VirtualSensorSpace, integrate_batch,
+                                       reentry_sensitivity)
 from mm_sim.wheeled_model import WheeledRobot
 
 DT = 0.05
@@ -272,6 +273,25 @@ def test_reentry_prediction_improves_with_practice(model, heldout_log):
     many_rms, few_rms, raw_rms = heldout_rms(v), heldout_rms(few), heldout_rms(uncorrected)
     assert many_rms < 0.5 * few_rms                      # measured 0.4 vs 3.1 grid units
     assert many_rms < 0.5 * raw_rms                      # and the correction generalises (raw: ~4)
+
+
+def test_reentry_sensitivities_match_finite_differences(model):
+    """The re-entry fit's analytic Jacobian (forward sensitivities through the Euler steps, clipping included)
+    against central differences of the same integration, at a nonzero correction."""
+    closed = [e for e in model.excursions_ if e.end is not None and 0 < len(e.commands) <= 60][:8]
+    space = VirtualSensorSpace(model.dt, model.grid_box(), model.virtual_bounds())
+    starts, commands, _ = space._pack(closed)
+    field = ExtrapolatedField(model.field1_, correction=0.3 * model.field1_.theta_[::-1])
+    end, sensitivity = reentry_sensitivity(field, starts, commands, model.dt, space.bounds)
+    np.testing.assert_array_equal(end, integrate_batch(field, starts, commands, model.dt, space.bounds)[:, -1])
+    base, h = field.correction.copy(), 1e-6
+    for p in range(base.size):
+        ends = []
+        for sign in (1.0, -1.0):
+            field.correction = base.copy()
+            field.correction.flat[p] += sign * h
+            ends.append(integrate_batch(field, starts, commands, model.dt, space.bounds)[:, -1])
+        np.testing.assert_allclose(sensitivity[:, :, p], (ends[0] - ends[1]) / (2 * h), rtol=1e-4, atol=1e-6)
 
 
 def test_virtual_space_overlaps_sensor2(model, robot):
