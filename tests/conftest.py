@@ -1,6 +1,6 @@
 """Fixtures for the multi-process graph and replay tests."""
 import pytest
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 
 
 @pytest.fixture

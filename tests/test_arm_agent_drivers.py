@@ -4,7 +4,7 @@ exploration, the wait for learning, the goal, the map request of the current fra
 the object. The test plays image_embedding's part with one fixed map (the simulator's ground-truth cell map), the
 same for both drivers, so only the drivers differ."""
 import numpy as np
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 from mm_msgs.msg import CollisionMap, ControllerStatus
 from mm_msgs.srv import SetJointGoal
 from rclpy.parameter import Parameter

@@ -6,7 +6,7 @@ import subprocess
 import sys
 
 import numpy as np
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
 

@@ -35,7 +35,7 @@ from std_msgs.msg import Bool, Float64MultiArray, Header
 
 from mm_bringup.process_graph import NodeProcess, ProcessGraph
 from mm_common.rosbag import iter_messages
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 
 FAR_FUTURE_SEC = 2**31 - 1
 HUGE_LENGTH = 100_000

@@ -181,7 +181,8 @@ def drive(work: Path, namespace_b: str) -> None:
     from mm_bringup.wall_experiment import PAPER_START, sensor2_goal_reading
     from mm_bringup.wall_graph import WallGraph
     from mm_msgs.msg import ControllerStatus
-    from mm_sim.wheeled_model import SENSOR2, WheeledRobot
+    from mm_common.wheeled_sensors import SENSOR2
+    from mm_sim.wheeled_model import WheeledRobot
 
     libc = ctypes.CDLL(None, use_errno=True)
 

@@ -9,7 +9,7 @@ import time
 import pytest
 
 from mm_bringup.process_graph import ProcessGraph, wait_for
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGINT)
 SIM_TIME = {'use_sim_time': True}

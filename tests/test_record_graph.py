@@ -31,7 +31,7 @@ def recorder_subscribed(node, topics):
 
 @pytest.fixture(scope='module')
 def recorded_bag(tmp_path_factory):
-    from mm_common.testing import RosHarness
+    from mm_common.ros_harness import RosHarness
     bag = tmp_path_factory.mktemp('graph') / 'bag'
     ros = RosHarness()
     with ProcessGraph(log_dir=bag.parent / 'logs') as graph:

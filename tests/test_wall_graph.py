@@ -16,14 +16,14 @@ from sensor_msgs.msg import Range
 from std_msgs.msg import Float64MultiArray
 
 from mm_bringup.process_graph import ProcessGraph
-from mm_bringup.wall_experiment import PAPER_START, sensor2_goal_reading
+from mm_bringup.wall_experiment import PAPER_GOAL_POSES, PAPER_START, sensor2_goal_reading
 from mm_bringup.wall_graph import WallGraph
 from mm_manifold.sensor_manifold import SensorManifoldModel
-from mm_manifold.sensor_manifold_node import SENSOR_NAMES
-from mm_sim.wheeled_model import SENSOR2, WheeledRobot
+from mm_common.wheeled_sensors import SENSOR2, SENSOR_NAMES
+from mm_sim.wheeled_model import WheeledRobot
 
 EXPLORATION = 10000
-GOAL_POSE = (0.0, 0.25, 0.0)
+GOAL_POSE = PAPER_GOAL_POSES['overlap']
 TOLERANCE = 0.005
 RECORDED = [f'/wheeled/range/{n}' for n in SENSOR_NAMES] + ['/wheeled/wheel_velocity_controller/commands']
 ROBOT_NODES = {'wheeled_sim', 'sensor_manifold', 'switching_controller'}

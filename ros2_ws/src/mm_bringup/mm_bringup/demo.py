@@ -28,11 +28,12 @@ from mm_msgs.msg import ControllerStatus
 from mm_bringup.arm_demo import run_arm_demo
 from mm_bringup.bag_tool import format_info
 from mm_bringup.process_graph import ProcessGraph
-from mm_bringup.wall_experiment import PAPER_START, oracle_path_length, sensor2_goal_reading
+from mm_bringup.wall_experiment import PAPER_GOAL_POSES, PAPER_START, oracle_path_length, sensor2_goal_reading
 from mm_bringup.wall_graph import WallGraph
-from mm_sim.wheeled_model import SENSOR2, WheeledRobot
+from mm_common.wheeled_sensors import SENSOR2
+from mm_sim.wheeled_model import WheeledRobot
 
-PAPER_GOAL_POSE = (0.0, 0.25, 0.0)
+PAPER_GOAL_POSE = PAPER_GOAL_POSES['overlap']   # the demo runs wheeled_sim.yaml's default layout
 PAPER_TOLERANCE = 0.005
 # The recorder must hold these from the loop's first step (see WallGraph).
 LOOP_TOPICS = ['/clock', '/wheeled/ground_truth/odom', '/wheeled/wheel_velocity_controller/commands',

@@ -26,7 +26,7 @@ from scipy.stats import spearmanr  # noqa: E402
 
 from mm_bringup.bench.arm_task import (LEARNER_PARAMS, PLACEMENT_SEED, SCENE_SEED, TEST_SEED,  # noqa: E402
                                        TRAIN_SEED, choose_task, execute_plan, truth_move_maps)
-from mm_manifold.arm_evaluation import evaluate_collision_prediction  # noqa: E402
+from mm_bringup.arm_evaluation import evaluate_collision_prediction  # noqa: E402
 from mm_manifold.embedding import ImageEmbedding, format_confusion, synthetic_keypoint_frames  # noqa: E402
 from mm_manifold.keypoints import KeypointExtractor, NearestImputer  # noqa: E402
 from mm_planner.value_iteration import DPPlanner, JointGrid  # noqa: E402

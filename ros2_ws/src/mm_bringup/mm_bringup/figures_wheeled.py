@@ -26,11 +26,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Polygon, Rectangle  # noqa: E402
 
-from mm_manifold.sensor_manifold import (SENSOR1, SENSOR2, SPACE_NONE, SPACE_SENSOR1,  # noqa: E402
-                                         SPACE_SENSOR2, SPACE_VIRTUAL)
+from mm_common.wheeled_sensors import SENSOR1, SENSOR2, SENSOR_NAMES  # noqa: E402
+from mm_manifold.sensor_manifold import SPACE_NONE, SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL  # noqa: E402
 
-SENSOR1_LABELS = ('front_left', 'front_center', 'front_right')
-SENSOR2_LABELS = ('side_front', 'side_rear')
+SENSOR1_LABELS = tuple(SENSOR_NAMES[i] for i in SENSOR1)
+SENSOR2_LABELS = tuple(SENSOR_NAMES[i] for i in SENSOR2)
 SPACE_NAMES = {SPACE_NONE: 'none', SPACE_SENSOR1: 'sensor 1', SPACE_VIRTUAL: 'virtual sensor 1',
                SPACE_SENSOR2: 'sensor 2'}
 

@@ -3,7 +3,7 @@
     ./mm python -m mm_bringup.tune_arm [--output results/tune_arm.json] [--stages embedding map]
 
 Stage 'embedding': for every combination of the grid (keypoint vector representation, LLE method, embedding
-dimensions) it runs mm_manifold.arm_evaluation.evaluate_collision_prediction on scene SCENE_SEED with training
+dimensions) it runs mm_bringup.arm_evaluation.evaluate_collision_prediction on scene SCENE_SEED with training
 placements from TRAIN_SEED and held-out placements from TEST_SEED (the benchmark uses scene 0 and generators 1, 2,
 3) and scores the held-out TPR - FPR of the paper's LLE sphere and of the best cross-validated LLE region. The
 winner (largest sum of the two) goes into bench.arm_task.LEARNER_PARAMS by hand.
@@ -20,7 +20,7 @@ import json
 import time
 from pathlib import Path
 
-from mm_manifold.arm_evaluation import evaluate_collision_prediction
+from mm_bringup.arm_evaluation import evaluate_collision_prediction
 from mm_manifold.keypoints import KeypointExtractor
 
 SCENE_SEED, TRAIN_SEED, TEST_SEED, MAP_SEED = 10, 11, 12, 13
@@ -33,7 +33,7 @@ def tune_map(n_train: int, extractor) -> dict:
     """Stage 'map' (module docstring)."""
     import numpy as np
     from mm_bringup.bench.arm_task import LEARNER_PARAMS, plan_before_moving
-    from mm_manifold.arm_evaluation import moving_object_exploration, render_keypoints
+    from mm_bringup.arm_evaluation import moving_object_exploration, render_keypoints
     from mm_manifold.arm_learning import ArmStateLearner
     from mm_sim.arm_model import ArmModel
     model = ArmModel(random_state=SCENE_SEED)

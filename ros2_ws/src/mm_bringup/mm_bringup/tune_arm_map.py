@@ -28,7 +28,7 @@ QUANTILES = (0.0, 0.005, 0.01, 0.02, 0.05)
 
 
 def main(argv=None) -> int:
-    from mm_manifold.arm_evaluation import moving_object_exploration, render_keypoints
+    from mm_bringup.arm_evaluation import moving_object_exploration, render_keypoints
     from mm_manifold.arm_learning import ArmStateLearner
     from mm_manifold.keypoints import KeypointExtractor
     from mm_sim.arm_model import ArmModel

@@ -17,7 +17,8 @@ import yaml
 from ament_index_python.packages import get_package_share_directory
 
 from mm_manifold.model_message import model_to_msg
-from mm_manifold.sensor_manifold import SENSOR2, SensorManifoldModel, StateTracker
+from mm_common.wheeled_sensors import SENSOR2
+from mm_manifold.sensor_manifold import SensorManifoldModel, StateTracker
 from mm_msgs.msg import ControllerStatus
 from mm_planner.switching_controller import SPACE_SENSOR2
 from mm_planner.wall_agent import Goal, Observation, WallAgent
@@ -25,7 +26,9 @@ from mm_planner.wall_model import WallModel
 from mm_sim.wheeled_model import ProximitySensor, WheeledRobot, default_sensors, wall_relative_state
 
 PAPER_START = (0.0, 1.0, -math.pi / 2)          # facing the wall perpendicularly at 1 m
-PAPER_GOAL = (0.0, 0.2, 0.0)                    # close to the wall, parallel, only sensor 2 sees it
+# The paper's goal, parallel to the wall where only sensor 2 sees it: 0.25 m on `overlap`; on `paper` the side
+# sensors read at most 0.15 m, so 0.12 m from the wall.
+PAPER_GOAL_POSES = {'paper': (0.0, 0.12, 0.0), 'overlap': (0.0, 0.25, 0.0)}
 
 
 LAYOUTS = ('paper', 'overlap')       # named sensor layouts: parameter files in mm_sim/layouts/
@@ -306,7 +309,7 @@ def main(argv=None) -> int:
 
 
 __all__ = ['explore', 'run_episode', 'model_message', 'agent_model', 'oracle_path_length', 'success', 'random_task', 'sensor2_goal_reading',
-           'PAPER_START', 'PAPER_GOAL', 'wall_relative_state']
+           'PAPER_START', 'PAPER_GOAL_POSES', 'wall_relative_state']
 
 if __name__ == '__main__':
     raise SystemExit(main())

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Deque, List, Optional, Sequence
 
 import numpy as np
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 from mm_msgs.msg import ControllerStatus, ManifoldState, SensorGoal, SensorManifoldModel
 from mm_msgs.srv import ResetPose
 from nav_msgs.msg import Odometry

@@ -3,7 +3,7 @@ check with a moving object (small sizes; the benchmark runs the full ones)."""
 import numpy as np
 
 from mm_bringup.bench.arm_task import plan_before_moving, synthetic_check, truth_move_maps
-from mm_manifold.arm_evaluation import moving_object_exploration, render_keypoints
+from mm_bringup.arm_evaluation import moving_object_exploration, render_keypoints
 from mm_manifold.arm_learning import ArmStateLearner
 from mm_manifold.keypoints import KeypointExtractor
 from mm_planner.value_iteration import JointGrid

@@ -2,7 +2,7 @@
 bad regexes and a missing bag are clear errors, and the in-process recorder writes with the time-based commit."""
 import pytest
 from mm_common.rosbag import BagError, BagWriter, McapScan, QosSummary, iter_messages, read_metadata
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String

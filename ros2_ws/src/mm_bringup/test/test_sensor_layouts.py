@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from mm_bringup.wall_experiment import layout_file, layout_robot, robot_from_params, simulator_params_file
-from mm_sim.wheeled_model import SENSOR1, SENSOR2, WheeledRobot
+from mm_common.wheeled_sensors import SENSOR1, SENSOR2
+from mm_sim.wheeled_model import WheeledRobot
 
 DISTANCES, HEADINGS = 1000, 1200       # 1.2 M poses
 

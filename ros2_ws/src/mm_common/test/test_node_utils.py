@@ -12,7 +12,7 @@ from rclpy.parameter import Parameter
 
 from mm_common.node_utils import (InputRejections, array_problem, check_parameters, declare, ordered, ordered_pair,
                                   reject_input, reject_non_finite, rejected_inputs)
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 
 
 def _runtime_double_array(name, values):

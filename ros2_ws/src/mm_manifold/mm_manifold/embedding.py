@@ -19,7 +19,7 @@ class ImageEmbedding:
     moves 20 px, as it does in the image. 'standard' divides each column by its own spread (floored at `min_std` px
     so that keypoints which never move - background - do not turn their sub-pixel jitter into unit-variance
     noise); on rendered arm frames it inflates the small-motion keypoints near the shoulder together with their
-    imputation errors, and predicts contact worse (see arm_evaluation).
+    imputation errors, and predicts contact worse (see mm_bringup.arm_evaluation).
 
     LLE suits the arm because the image changes smoothly with the joints only locally (the paper's argument).
     lle_method='modified' (MLLE: several weight vectors per neighbourhood) is the default because standard LLE on

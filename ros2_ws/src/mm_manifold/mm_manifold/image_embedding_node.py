@@ -154,8 +154,9 @@ class ImageEmbeddingNode(Node):
             object_tolerance=declare(self, 'object_tolerance', 3.0, 'px: keypoint labels whose mutual offsets stay '
                                      'this steady move as one rigid object (keypoint_distance)', min_value=0.1,
                                      max_value=99.0, read_only=True),
-            margin_quantile=declare(self, 'margin_quantile', 0.01, "Share of the no-contact frames allowed inside a "
-                                    "segment's contact distance (keypoint_distance; chosen by mm_bringup.tune_arm_map)",
+            margin_quantile=declare(self, 'margin_quantile', 0.0, "Share of the no-contact frames allowed inside a "
+                                    "segment's contact distance (keypoint_distance; chosen through the graph by "
+                                    "mm_bringup.tune_arm_reach)",
                                     min_value=0.0, max_value=0.5, read_only=True),
         )
         self.contact_label = declare(self, 'contact_label', 'arm', "Which contact sense labels the frames: 'arm' "

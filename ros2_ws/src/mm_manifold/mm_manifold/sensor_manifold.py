@@ -21,14 +21,13 @@ import numpy as np
 from mm_msgs.msg import ManifoldState
 
 from mm_common.learned_fields import n_polynomial_features
+from mm_common.wheeled_sensors import SENSOR1, SENSOR2
 
 from mm_manifold.dimension import LocalPCADimension
 from mm_manifold.grid import ElasticGrid
 from mm_manifold.jacobian import PolynomialJacobianField, RegionJacobians
 from mm_manifold.virtual_space import Excursion, ExtrapolatedField, VirtualSensorSpace
 
-SENSOR1 = (0, 1, 2)
-SENSOR2 = (3, 4)
 # The active spaces are the state message's constants (their one home).
 SPACE_NONE, SPACE_SENSOR1 = ManifoldState.SPACE_NONE, ManifoldState.SPACE_SENSOR1
 SPACE_VIRTUAL, SPACE_SENSOR2 = ManifoldState.SPACE_VIRTUAL_SENSOR1, ManifoldState.SPACE_SENSOR2

@@ -35,6 +35,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 from mm_common.node_utils import declare, reject_non_finite, run_node
+from mm_common.wheeled_sensors import SENSOR1, SENSOR2, SENSOR_NAMES
 from mm_msgs.msg import JacobianEstimate, ManifoldState
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
 from rcl_interfaces.msg import SetParametersResult
@@ -45,10 +46,9 @@ from sensor_msgs.msg import Range
 from std_msgs.msg import Float64MultiArray
 
 from mm_manifold.model_message import model_to_msg
-from mm_manifold.sensor_manifold import (SENSOR1, SENSOR2, SPACE_NONE, SPACE_SENSOR1, SPACE_SENSOR2,
-                                         SPACE_VIRTUAL, SensorManifoldModel, StateTracker, refit_problem)
+from mm_manifold.sensor_manifold import (SPACE_NONE, SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SensorManifoldModel,
+                                         StateTracker, refit_problem)
 
-SENSOR_NAMES = ('front_left', 'front_center', 'front_right', 'side_front', 'side_rear')
 # Lockstep loop topics are RELIABLE (no sample may be lost, the controller waits for each state).
 LOOP_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 # The model is latched state (TRANSIENT_LOCAL, depth 1): a controller that starts or restarts after the fit still gets

@@ -21,9 +21,8 @@ from collections import deque
 from typing import Deque, List, Optional
 
 import numpy as np
+from mm_common.wheeled_sensors import SENSOR1, SENSOR2
 
-SENSOR1 = (0, 1, 2)
-SENSOR2 = (3, 4)
 
 
 class RandomExplorer:

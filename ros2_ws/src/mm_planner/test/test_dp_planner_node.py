@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 from mm_common.node_utils import rejected_inputs
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 from mm_msgs.msg import CollisionMap, Contact, ControllerStatus, EmbeddingState
 from mm_msgs.srv import SetJointGoal
 from rclpy.parameter import Parameter

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from typing import List, Optional, Sequence
 
 import numpy as np
+from mm_common.wheeled_sensors import SENSOR1, SENSOR2
 
 
 @dataclass(frozen=True)
@@ -60,8 +61,6 @@ def default_sensors() -> List[ProximitySensor]:
     ]
 
 
-SENSOR1 = (0, 1, 2)   # indices of the front group in the reading vector
-SENSOR2 = (3, 4)      # indices of the side group
 
 
 @dataclass

@@ -28,6 +28,7 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point
 from mm_common.node_utils import array_problem, check_parameters, declare, reject_input, run_node
+from mm_common.wheeled_sensors import SENSOR_NAMES
 from mm_msgs.srv import ResetPose
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
@@ -41,7 +42,6 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from mm_sim.wheeled_model import ProximitySensor, WheeledRobot, default_sensors
 
-SENSOR_NAMES = ('front_left', 'front_center', 'front_right', 'side_front', 'side_rear')
 COMMAND_TOPIC = 'wheeled/wheel_velocity_controller/commands'
 RESET_SERVICE = 'wheeled/reset'
 

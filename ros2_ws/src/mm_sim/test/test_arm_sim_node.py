@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, JointState

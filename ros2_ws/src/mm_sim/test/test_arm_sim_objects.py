@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 from mm_msgs.msg import ArmGroundTruth, Contact
 from mm_msgs.srv import PlaceObject
 from rclpy.parameter import Parameter

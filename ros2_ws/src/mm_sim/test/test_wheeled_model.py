@@ -4,7 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from mm_sim.wheeled_model import SENSOR1, SENSOR2, ProximitySensor, WheeledRobot, wall_relative_state
+from mm_common.wheeled_sensors import SENSOR1, SENSOR2
+from mm_sim.wheeled_model import ProximitySensor, WheeledRobot, wall_relative_state
 
 
 def far_pose(theta=0.0):

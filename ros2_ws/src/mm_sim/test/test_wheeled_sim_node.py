@@ -2,7 +2,7 @@
 import math
 
 import pytest
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 from mm_msgs.srv import ResetPose
 from nav_msgs.msg import Odometry
 from rclpy.parameter import Parameter
@@ -11,7 +11,8 @@ from sensor_msgs.msg import Range
 from std_msgs.msg import Bool, Float64MultiArray
 from visualization_msgs.msg import MarkerArray
 
-from mm_sim.wheeled_sim_node import SENSOR_NAMES, WheeledSim
+from mm_common.wheeled_sensors import SENSOR_NAMES
+from mm_sim.wheeled_sim_node import WheeledSim
 
 QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
 

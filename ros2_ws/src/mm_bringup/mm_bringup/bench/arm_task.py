@@ -2,7 +2,7 @@
 moving as in the paper. (Planning through the ROS graph is the arm_reach benchmark.)
 
 Parts:
-- Tables 1-2 (collision prediction): mm_manifold.arm_evaluation. Exploration frames with the object re-placed
+- Tables 1-2 (collision prediction): mm_bringup.arm_evaluation. Exploration frames with the object re-placed
   every 10 frames (placements from generator TRAIN_SEED), test frames from placements of another generator
   (TEST_SEED), never seen in training; the same frames for every method. Keys `lle_sphere_*` / `pca_sphere_*` (the
   paper's sphere: centre = mean of the contact frames, radius by cross-validation on the training frames),
@@ -38,7 +38,7 @@ from scipy.stats import spearmanr
 from threadpoolctl import threadpool_limits
 
 from mm_bringup.arm_graph import free_path_exists
-from mm_manifold.arm_evaluation import evaluate_collision_prediction
+from mm_bringup.arm_evaluation import evaluate_collision_prediction
 from mm_manifold.arm_learning import ArmStateLearner
 from mm_manifold.embedding import ImageEmbedding, synthetic_keypoint_frames
 from mm_manifold.keypoints import KeypointExtractor, NearestImputer

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 from mm_common.rosbag import read_metadata
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, Range
 from std_msgs.msg import Float64MultiArray, Header

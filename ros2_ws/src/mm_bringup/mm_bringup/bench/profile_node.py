@@ -15,7 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 from rclpy.parameter import Parameter
 
 from mm_bringup.process_graph import ProcessGraph

@@ -35,14 +35,13 @@ from typing import List, Optional
 
 import numpy as np
 
-from mm_bringup.wall_experiment import (PAPER_START, layout_file, layout_robot, learn, oracle_path_length,
-                                        random_task, run_episode, sensor2_goal_reading, simulator_params_file)
-from mm_sim.wheeled_model import SENSOR2, WheeledRobot
+from mm_bringup.wall_experiment import (PAPER_GOAL_POSES, PAPER_START, layout_file, layout_robot, learn,
+                                        oracle_path_length, random_task, run_episode, sensor2_goal_reading,
+                                        simulator_params_file)
+from mm_common.wheeled_sensors import SENSOR2
+from mm_sim.wheeled_model import WheeledRobot
 
 NAME = 'wall_task'
-# The paper's task: start facing the wall at 1 m, goal parallel to it where only sensor 2 sees it: 0.25 m on
-# `overlap`; on `paper` the side sensors read at most 0.15 m, so 0.12 m from the wall.
-PAPER_GOAL_POSES = {'paper': (0.0, 0.12, 0.0), 'overlap': (0.0, 0.25, 0.0)}
 PAPER_TOLERANCE = 0.005
 TOLERANCE = 0.01
 NOISE = {'std_fraction_of_max_range': 0.01, 'dropout': 0.05}

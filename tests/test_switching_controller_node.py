@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 from mm_msgs.msg import ControllerStatus, ManifoldState, SensorGoal
 from mm_msgs.srv import SetSensorGoal
 from rclpy.parameter import Parameter

@@ -215,7 +215,7 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
     return result
 
 
-if __name__ == '__main__':      # python -m mm_manifold.arm_evaluation
+if __name__ == '__main__':      # python -m mm_bringup.arm_evaluation
     import json
     ev = evaluate_collision_prediction()
     print(json.dumps({k: v for k, v in ev.items() if not k.startswith('_') and not k.endswith('candidates')},

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_cdt
 
-from mm_manifold.arm_evaluation import moving_object_exploration, render_keypoints, sample_exploration_joints
+from mm_bringup.arm_evaluation import moving_object_exploration, render_keypoints, sample_exploration_joints
 from mm_manifold.arm_learning import (EXTERNAL, SELF, STATIC, ArmStateLearner, ModelFileError, cell_map, cross_max,
                                       joint_features, label_roles)
 from mm_manifold.embedding import ContactQuadric, ContactSphere

@@ -5,11 +5,12 @@ import math
 import numpy as np
 import pytest
 
-from mm_bringup.wall_experiment import (PAPER_START, explore, layout_robot, model_message, oracle_path_length,
-                                        random_task, run_episode, sensor2_goal_reading, success)
+from mm_bringup.wall_experiment import (PAPER_GOAL_POSES, PAPER_START, explore, layout_robot, model_message,
+                                        oracle_path_length, random_task, run_episode, sensor2_goal_reading, success)
 from mm_manifold.jacobian import PolynomialJacobianField
 from mm_manifold.sensor_manifold import SensorManifoldModel, find_excursions, group_in_range
-from mm_planner.exploration import SENSOR1, SENSOR2, RandomExplorer
+from mm_common.wheeled_sensors import SENSOR1, SENSOR2
+from mm_planner.exploration import RandomExplorer
 from mm_planner.switching_controller import SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SwitchingController, blind
 from mm_planner.wall_agent import WallAgent
 from mm_planner.wall_model import WallModel
@@ -235,7 +236,7 @@ def model(robot):
     return SensorManifoldModel(DT).fit(log.readings, log.commands, log.continuous)
 
 
-PAPER_GOAL_POSE = (0.0, 0.25, 0.0)
+PAPER_GOAL_POSE = PAPER_GOAL_POSES['overlap']
 
 
 def test_paper_task_crosses_the_blind_region_and_parks_parallel(robot, model):

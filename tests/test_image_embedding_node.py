@@ -5,7 +5,7 @@ mismatched model file means learning again."""
 import math
 
 import numpy as np
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 from mm_msgs.msg import CollisionMap, Contact, EmbeddingState
 from mm_common.node_utils import rejected_inputs
 from rclpy.parameter import Parameter
@@ -13,7 +13,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Header
 
-from mm_manifold.arm_evaluation import sample_exploration_joints
+from mm_bringup.arm_evaluation import sample_exploration_joints
 from mm_manifold.arm_learning import ArmStateLearner
 from mm_manifold.image_embedding_node import ImageEmbeddingNode, model_score
 from mm_sim.arm_model import ArmModel

@@ -12,9 +12,9 @@ from mm_bringup.wall_experiment import explore
 from mm_manifold.dimension import LocalPCADimension
 from mm_manifold.grid import ElasticGrid
 from mm_manifold.jacobian import PolynomialJacobianField
-from mm_manifold.sensor_manifold import (SENSOR1, SENSOR2, SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL,
-                                         SensorManifoldModel, StateTracker, find_excursions, group_in_range,
-                                         refit_problem)
+from mm_common.wheeled_sensors import SENSOR1, SENSOR2
+from mm_manifold.sensor_manifold import (SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SensorManifoldModel,
+                                         StateTracker, find_excursions, group_in_range, refit_problem)
 from mm_manifold.virtual_space import (Excursion, ExtrapolatedField, VirtualSensorSpace, integrate_batch,
                                        reentry_sensitivity)
 from mm_sim.wheeled_model import WheeledRobot

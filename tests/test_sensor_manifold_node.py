@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from mm_common.testing import RosHarness
+from mm_common.ros_harness import RosHarness
 from mm_msgs.msg import JacobianEstimate, ManifoldState
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
 from rclpy.parameter import Parameter
@@ -16,7 +16,8 @@ from std_msgs.msg import Float64MultiArray
 
 from mm_bringup.wall_experiment import explore
 from mm_manifold.sensor_manifold import SPACE_NONE, SPACE_SENSOR1, SPACE_VIRTUAL, SensorManifoldModel
-from mm_manifold.sensor_manifold_node import SENSOR_NAMES, SensorManifold
+from mm_common.wheeled_sensors import SENSOR_NAMES
+from mm_manifold.sensor_manifold_node import SensorManifold
 from mm_sim.wheeled_model import WheeledRobot
 
 QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)

@@ -1,4 +1,5 @@
-"""In-process test harness: nodes under test run in their own rclpy Context and executor, polled with deadlines."""
+"""In-process ROS harness: nodes run in their own rclpy Context and executor, polled with deadlines (node tests, and
+the benchmarks' experimenter nodes that drive a graph from one process)."""
 from __future__ import annotations
 
 import time
