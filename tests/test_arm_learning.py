@@ -1,5 +1,6 @@
 """ArmStateLearner: label roles from the joints, collision maps (over exploration frames and predicted before moving for
 an unseen object placement), fast out-of-sample maps, saving/loading without pickle."""
+import copy
 import dataclasses
 
 import numpy as np
@@ -268,3 +269,23 @@ def test_keypoint_distance_map_places_the_learned_object_where_the_frame_shows_i
     # an earlier frame of the same scene places it
     out = learner.predict_collision_map(blind, recent=[frame], method='keypoint_distance')
     assert out['method'] == 'keypoint_distance' and out['new_frames'] == 2
+
+
+def test_keypoint_distance_outlines_the_robot_with_precisely_placed_labels_only(moving):
+    """A robot label the joints place only roughly (SIFT sometimes matches it elsewhere on the arm) takes no part in
+    the segments: through it the map blocked cells whose true clearance was 20-100 px."""
+    _, learner = moving
+    raw = learner.vectorizer_.training_vectors_
+    joints, contact = learner.train_joints_, learner.train_contact_
+    P = raw.reshape(len(raw), -1, 2)
+    residuals = learner._label_residuals(P, joints)
+    used = np.unique(learner.rigid_pairs_)
+    assert len(used) >= 10 and np.all(residuals[used] <= learner.rigid_tolerance)
+    # the most connected label, moved 15 px off in every other frame where it is seen, drops out
+    label = np.bincount(learner.rigid_pairs_.ravel()).argmax()
+    corrupted = P.copy()
+    corrupted[::2, learner.self_labels_[label]] += 15.0
+    other = copy.copy(learner)                    # the fixture's learner stays as it was
+    other._fit_object_geometry(corrupted.reshape(len(raw), -1), joints, contact)
+    assert label not in np.unique(other.rigid_pairs_)
+    assert label in used and len(np.unique(other.rigid_pairs_)) >= len(used) - 1

@@ -1,14 +1,16 @@
-"""Choose image_embedding's `map_method` and `margin_quantile` for the arm_reach benchmark on scenes and placements
-of its own.
+"""Choose the arm_reach graph's exploration length and image_embedding's `map_method` / `margin_quantile` on scenes
+and placements of their own.
 
-    ./mm python -m mm_bringup.tune_arm_reach --output results/tune_arm_reach.json
+    ./mm python -m mm_bringup.tune_arm_reach --output results/tune_arm_reach.json [--stage exploration|map|both]
 
-Runs the arm_reach graph experiment (mm_bringup.bench.arm_reach.run: one exploration + fit, then held-out
-placements with the object in the way, scored on the simulator's ground truth) on scene seeds TUNE_SCENES and
-placement seeds from TUNE_PLACEMENT_SEED0 (the benchmark uses scene 7 and placements 70001...), once per value of the
-setting, and writes every run's successes, contacts and plan failures. The benchmark's targets are 0 contacts and
-success >= 0.98; a success already excludes contact, and a setting that refuses every goal has no contact either,
-so the setting with the most successes (then the fewest placements with contact) is `best` (choose()).
+Runs the arm_reach graph experiment (mm_bringup.bench.arm_reach.run: one exploration + fit, then held-out placements
+with the object in the way, scored on the simulator's ground truth). Stage `exploration`: exploration frames
+EXPLORATION_CANDIDATES on scenes EXPLORATION_SCENES (10 placements each, seeds 100000 + 1000 x scene + 1...) with the
+map settings at image_embedding's defaults. Stage `map`: the map SETTINGS on scenes TUNE_SCENES (placement seeds from
+TUNE_PLACEMENT_SEED0 + 1000 x scene) with the chosen exploration. The benchmark uses scene 7 and placements 70001...;
+tune_arm / tune_arm_map use scene 10, arm_task scene 0. The benchmark's targets are 0 contacts and success >= 0.98; a
+success already excludes contact, and a setting that refuses every goal has no contact either, so the setting with the
+most successes (then the fewest placements with contact, then the shorter exploration) is `best` (choose()).
 Earlier runs of this script (before map_method existed, hand touch labels) kept dp_planner's
 through_predicted_collision off (17 vs 25 placements with contact of 30) and found map_margin 0.1-0.6 identical (it
 concerns the exploration-frame map only).
@@ -25,6 +27,9 @@ from mm_bringup.bench import arm_reach
 
 TUNE_SCENES = (8, 9)
 TUNE_PLACEMENT_SEED0 = 90_000
+EXPLORATION_SCENES = (11, 12, 13, 14, 15, 16)
+EXPLORATION_PLACEMENT_SEED0 = 100_000
+EXPLORATION_CANDIDATES = (600, 1000, 1500)
 # image_embedding parameters under test: the paper's route, and the keypoint-distance route with the share of
 # no-contact frames allowed inside a segment's contact distance (tune_arm_map chose 0.01 in-process, where DP may
 # cross predicted collisions; through the graph a goal the map cuts off is refused, so a tighter map matters more)
@@ -32,39 +37,52 @@ SETTINGS = ({'map_method': 'embedding'},
             *({'map_method': 'keypoint_distance', 'margin_quantile': q} for q in (0.0, 0.005, 0.01, 0.02)))
 
 
-def choose(rows) -> dict:
-    """The setting with the most successes over all runs, then the fewest placements with contact."""
-    def total(setting):
-        runs = [r for r in rows if r['setting'] == setting]
-        return sum(r['successes'] for r in runs), -sum(r['contacts'] for r in runs)
+def choose(rows, key: str, candidates):
+    """The candidate (value of `key` in the rows) with the most successes over all its runs, then the fewest
+    placements with contact, then the first in `candidates` (the cheaper exploration)."""
+    def total(candidate):
+        runs = [r for r in rows if r[key] == candidate]
+        return sum(r['successes'] for r in runs), -sum(r['contacts'] for r in runs), -candidates.index(candidate)
 
-    return max(SETTINGS, key=total)
+    return max(candidates, key=total)
+
+
+def run_one(scene: int, seed0: int, placements: int, exploration: int, setting: dict) -> dict:
+    with tempfile.TemporaryDirectory(prefix='tune_arm_reach_') as tmp:
+        out = arm_reach.run(Path(tmp), False, placements=placements, scene_seed=scene,
+                            placement_seed0=seed0 + 1000 * scene, exploration_steps=exploration,
+                            embedding_params=dict(setting))
+    row = dict(setting=setting, exploration_steps=exploration, scene_seed=scene, placements=out['placements'],
+               successes=sum(r['success'] for r in out['per_placement']), contacts=out['contacts'],
+               plan_failures=len(out['plan_failures']), reached=out['reached'])
+    print(f'[tune_arm_reach] {row}', flush=True)
+    return row
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--output', default='results/tune_arm_reach.json')
-    parser.add_argument('--placements', type=int, default=10)
+    parser.add_argument('--placements', type=int, default=15, help='placements per scene in the map stage')
+    parser.add_argument('--stage', choices=('exploration', 'map', 'both'), default='both')
     args = parser.parse_args(argv)
-    rows = []
-    for setting in SETTINGS:
-        for scene in TUNE_SCENES:
-            with tempfile.TemporaryDirectory(prefix='tune_arm_reach_') as tmp:
-                out = arm_reach.run(Path(tmp), False, placements=args.placements, scene_seed=scene,
-                                    placement_seed0=TUNE_PLACEMENT_SEED0 + 1000 * scene,
-                                    embedding_params=dict(setting))
-            row = dict(setting=setting, scene_seed=scene, placements=out['placements'],
-                       successes=sum(r['success'] for r in out['per_placement']), contacts=out['contacts'],
-                       plan_failures=len(out['plan_failures']), reached=out['reached'])
-            rows.append(row)
-            print(f'[tune_arm_reach] {row}', flush=True)
-    best = choose(rows)
+    result = dict(exploration_rows=[], map_rows=[])
+    exploration = arm_reach.EXPLORATION_STEPS
+    if args.stage in ('exploration', 'both'):
+        rows = [run_one(scene, EXPLORATION_PLACEMENT_SEED0, 10, n, {})
+                for n in EXPLORATION_CANDIDATES for scene in EXPLORATION_SCENES]
+        exploration = choose(rows, 'exploration_steps', list(EXPLORATION_CANDIDATES))
+        result.update(exploration_rows=rows, best_exploration_steps=exploration)
+    if args.stage in ('map', 'both'):
+        rows = [run_one(scene, TUNE_PLACEMENT_SEED0, args.placements, exploration, setting)
+                for setting in SETTINGS for scene in TUNE_SCENES]
+        result.update(map_rows=rows, best=choose(rows, 'setting', list(SETTINGS)), map_exploration_steps=exploration)
     path = Path(args.output)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix('.json.tmp')
-    tmp.write_text(json.dumps(dict(best=best, rows=rows), indent=2) + '\n')
+    tmp.write_text(json.dumps(result, indent=2) + '\n')
     os.replace(tmp, path)
-    print(f'[tune_arm_reach] best {best}; wrote {path}')
+    print(f"[tune_arm_reach] best exploration {result.get('best_exploration_steps')}, map setting "
+          f"{result.get('best')}; wrote {path}")
     return 0
 
 

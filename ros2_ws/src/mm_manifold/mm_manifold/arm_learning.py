@@ -50,7 +50,8 @@ that is sometimes mismatched does not count) is an object. Its template (each la
 group's shift) is fitted on the exploration frames, so a frame that shows any two of its labels in agreement places
 the whole object, hidden keypoints included: the arm hides the object's keypoints in the very frames that carry the
 contact label, which made distances to the keypoints a frame happens to show useless. The robot's segments - pairs
-of its labels that keep their distance (`rigid_tolerance`), i.e. lie on one rigid part - are predicted at each
+of its labels that keep their distance (`rigid_tolerance`), i.e. lie on one rigid part, among the labels the joint
+regression places within `rigid_tolerance` px (median over the frames that show them) - are predicted at each
 lattice joint vector, and each segment has its own contact distance to the object's centre (the template's mean),
 learned from the touch labels: the `margin_quantile` of that segment's distances over the no-contact frames (near
 zero: the largest distance the object's centre came to it without contact), at most the largest distance over the
@@ -79,7 +80,7 @@ from mm_manifold.embedding import (REGION_MODELS, ContactQuadric, ContactSphere,
                                    quadratic_features, select_contact_model)
 from mm_manifold.keypoints import FrameKeypoints, KeypointVectorizer, MeanImputer, NearestImputer
 
-FORMAT_VERSION = 5
+FORMAT_VERSION = 6
 REPRESENTATIONS = ('relative', 'absolute')
 MAP_METHODS = ('keypoint_distance', 'embedding')
 STATIC, SELF, EXTERNAL, UNCLEAR = 0, 1, 2, 3     # label roles
@@ -425,8 +426,13 @@ class ArmStateLearner:
         segment's contact distance to the objects' centres."""
         lattice = np.stack(np.meshgrid(*[np.linspace(lo, hi, 15) for lo, hi in self.joint_limits],
                                        indexing='ij'), -1).reshape(-1, 2)
-        self.rigid_pairs_ = rigid_pairs(self._robot_points(lattice), self.rigid_tolerance)
         P = raw.reshape(len(raw), -1, 2)
+        # Only labels the joints place precisely outline the robot: a label SIFT sometimes matches elsewhere on the
+        # arm passes the regression's R^2 test yet lands 5-20 px off, and a segment through it blocked cells whose
+        # true clearance was 20-100 px.
+        precise = np.flatnonzero(self._label_residuals(P, joints) <= self.rigid_tolerance)
+        pairs = rigid_pairs(self._robot_points(lattice)[:, precise], self.rigid_tolerance)
+        self.rigid_pairs_ = precise[pairs].reshape(-1, 2)
         external = self.external_labels_
         self.object_group_ = np.full(P.shape[1], -1, int)
         self.object_template_ = np.full((P.shape[1], 2), np.nan)
@@ -444,6 +450,17 @@ class ArmStateLearner:
             cap = float(D[hit].min(axis=1).max())
             self.segment_margins_ = np.minimum(np.quantile(D[~hit], self.margin_quantile, axis=0), cap)
         self.object_frames_ = int(known.sum())
+
+    def _label_residuals(self, P: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        """Median distance [px] between each robot label's seen positions in frames P (n, L, 2) and where the joint
+        regression puts it (inf for a label never seen)."""
+        predicted = self._robot_points(joints)
+        seen = P[:, self.self_labels_]
+        error = np.linalg.norm(predicted - seen, axis=2)
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore', RuntimeWarning)           # a label never seen -> NaN
+            median = np.nanmedian(error, axis=0)
+        return np.where(np.isfinite(median), median, np.inf)
 
     @property
     def n_objects_(self) -> int:

@@ -29,6 +29,7 @@ from mm_bringup.process_graph import ProcessGraph
 NAME = 'arm_reach'
 SCENE_SEED = 7                    # textures and background; the exploration's object places follow it
 PLACEMENT_SEED0 = 70_000          # held-out placements: seeds 70001, 70002, ...
+EXPLORATION_STEPS = 1000          # frames explored before the fit (chosen by mm_bringup.tune_arm_reach)
 
 
 def run(output_dir: Path, quick: bool, placements: Optional[int] = None, exploration_steps: Optional[int] = None,
@@ -38,7 +39,7 @@ def run(output_dir: Path, quick: bool, placements: Optional[int] = None, explora
     """The benchmark (module docstring); mm_bringup.tune_arm_reach calls it with seeds of its own."""
     from mm_sim.arm_model import ArmModel
     n_placements = placements or (4 if quick else 30)
-    n_explore = exploration_steps or (300 if quick else 600)
+    n_explore = exploration_steps or (300 if quick else EXPLORATION_STEPS)
     t_start = time.monotonic()
     deadline = t_start + budget_s
     scene = ArmModel(random_state=scene_seed)
