@@ -174,7 +174,7 @@ def test_malformed_inputs_and_parameters_are_rejected_and_the_node_keeps_running
         for name, value in (('min_training_frames', 2000), ('max_training_frames', 100), ('random_seed', 3),
                             ('grid_rows', 4), ('model_path', '/tmp/x.npz'), ('cell_collision_fraction', 0.0)):
             assert not node.set_parameters([Parameter(name, value=value)])[0].successful, name
-        assert node.set_parameters([Parameter('max_training_frames', value=600)])[0].successful
-        assert node.max_training_frames == 600
+        assert node.set_parameters([Parameter('max_training_frames', value=1200)])[0].successful
+        assert node.max_training_frames == 1200
     finally:
         ros.close()

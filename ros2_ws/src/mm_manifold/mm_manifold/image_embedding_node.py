@@ -99,7 +99,7 @@ def model_score(learner: ArmStateLearner) -> float:
 class ImageEmbeddingNode(Node):
     def __init__(self, **node_kwargs):
         super().__init__('image_embedding', **node_kwargs)
-        self.min_training_frames = declare(self, 'min_training_frames', 500, 'Frames before the first fit',
+        self.min_training_frames = declare(self, 'min_training_frames', 1000, 'Frames before the first fit',
                                            min_value=20, max_value=100000)
         self.refit_every = declare(self, 'refit_every', 300, 'Refit after this many new frames (0 = never)',
                                    min_value=0, max_value=100000)

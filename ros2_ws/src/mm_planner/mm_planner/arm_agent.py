@@ -68,7 +68,7 @@ class ArmAgent:
     State: phase_, detail_, phase_step_, explored_, goal_ (joints), goal_cell_, goal_stamp_ (ns of the goal being or
     last pursued), target_, map_stamp_ (frame of the map in use), maps_received_, commands_sent_."""
 
-    def __init__(self, joint_limits, grid_shape: Tuple[int, int] = (8, 12), exploration_steps: int = 500,
+    def __init__(self, joint_limits, grid_shape: Tuple[int, int] = (8, 12), exploration_steps: int = 1000,
                  exploration_seed: Optional[int] = 0, contact_share: float = 0.25, contact_spread: float = 0.08,
                  max_execution_steps: int = 300, arrival_tolerance: float = 1e-3, step_reward: float = -1.0,
                  collision_reward: float = -100.0, goal_reward: float = 0.0, clearance_reward: float = -5.0,

@@ -79,7 +79,7 @@ class DpPlannerNode(Node):
         cols = declare(self, 'grid_cols', 12, 'Joint grid cols (joint 1)', min_value=1, max_value=200,
                        read_only=True)
         agent_params = dict(
-            exploration_steps=declare(self, 'exploration_steps', 500, 'Random-motion commands before learning (0 = '
+            exploration_steps=declare(self, 'exploration_steps', 1000, 'Random-motion commands before learning (0 = '
                                       'none: use a map that is already there)', min_value=0, max_value=1000000,
                                       read_only=True),
             exploration_seed=declare(self, 'exploration_seed', 0, 'Seed of the exploration targets', min_value=0,
