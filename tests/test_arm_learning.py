@@ -266,6 +266,14 @@ def test_keypoint_distance_map_places_the_learned_object_where_the_frame_shows_i
     assert np.all(np.isnan(learner.object_centres(blind)))
     out = learner.predict_collision_map(blind, method='keypoint_distance')
     assert out['method'] == 'embedding' and out['objects_placed'] == -1
+    # or, where a map that does not know the object's place must not be trusted, every cell is blocked
+    careful = copy.copy(learner)
+    careful.unplaced_object = 'block'
+    out = careful.predict_collision_map(blind, method='keypoint_distance')
+    assert out['method'] == 'keypoint_distance' and out['objects_placed'] == 0 and out['collision'].all()
+    assert careful.predict_collision_map(frame, method='keypoint_distance')['objects_placed'] == 1
+    with pytest.raises(ValueError):
+        ArmStateLearner(unplaced_object='guess')
     # an earlier frame of the same scene places it
     out = learner.predict_collision_map(blind, recent=[frame], method='keypoint_distance')
     assert out['method'] == 'keypoint_distance' and out['new_frames'] == 2

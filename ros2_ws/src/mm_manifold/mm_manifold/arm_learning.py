@@ -83,6 +83,7 @@ from mm_manifold.keypoints import FrameKeypoints, KeypointVectorizer, MeanImpute
 FORMAT_VERSION = 6
 REPRESENTATIONS = ('relative', 'absolute')
 MAP_METHODS = ('keypoint_distance', 'embedding')
+UNPLACED_POLICIES = ('embedding', 'block')      # keypoint-distance map of a frame that does not place the object
 STATIC, SELF, EXTERNAL, UNCLEAR = 0, 1, 2, 3     # label roles
 DEFAULT_JOINT_LIMITS = ((-3.2, -0.8), (0.0, 2.2))
 _VECTORIZER_PARAMS = ('n_labels', 'max_features', 'scale', 'match_ratio', 'max_pixel_shift', 'n_frame_neighbors',
@@ -297,7 +298,7 @@ class ArmStateLearner:
                  representation: str = 'relative', self_r2: float = 0.9, external_r2: float = 0.3,
                  min_motion: float = 10.0, recent_frames: int = 5, map_resolution: int = 4,
                  map_threshold: float = 0.5, map_method: str = 'embedding', rigid_tolerance: float = 2.0,
-                 object_tolerance: float = 3.0, margin_quantile: float = 0.01):
+                 object_tolerance: float = 3.0, margin_quantile: float = 0.01, unplaced_object: str = 'embedding'):
         lim = np.asarray(joint_limits, dtype=float)
         if lim.shape != (2, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
             raise ValueError('joint_limits must be ((lo0, hi0), (lo1, hi1)) with finite lo < hi')
@@ -322,6 +323,8 @@ class ArmStateLearner:
         if not (0.0 <= rigid_tolerance < 100.0 and 0.0 < object_tolerance < 100.0 and 0.0 <= margin_quantile <= 0.5):
             raise ValueError('0 <= rigid_tolerance < 100, 0 < object_tolerance < 100 and 0 <= margin_quantile <= 0.5 '
                              'are required')
+        if unplaced_object not in UNPLACED_POLICIES:
+            raise ValueError(f'unplaced_object must be one of {UNPLACED_POLICIES}')
         unknown = set(vectorizer_params or {}) - set(_VECTORIZER_PARAMS)
         if unknown:
             raise ValueError(f'unknown vectorizer parameters: {sorted(unknown)}')
@@ -350,6 +353,7 @@ class ArmStateLearner:
         self.rigid_tolerance = float(rigid_tolerance)
         self.object_tolerance = float(object_tolerance)
         self.margin_quantile = float(margin_quantile)
+        self.unplaced_object = unplaced_object
 
     def get_params(self) -> Dict[str, object]:
         """The constructor's parameters (JSON-able), as saved with the model."""
@@ -361,7 +365,7 @@ class ArmStateLearner:
                     min_motion=self.min_motion, recent_frames=self.recent_frames,
                     map_resolution=self.map_resolution, map_threshold=self.map_threshold, map_method=self.map_method,
                     rigid_tolerance=self.rigid_tolerance, object_tolerance=self.object_tolerance,
-                    margin_quantile=self.margin_quantile)
+                    margin_quantile=self.margin_quantile, unplaced_object=self.unplaced_object)
 
     # --- fitting ------------------------------------------------------------------------------------------
     def fit(self, keypoints: Sequence[FrameKeypoints], joints, contact, stamps=None) -> 'ArmStateLearner':
@@ -614,8 +618,10 @@ class ArmStateLearner:
         puts them. `method` (default map_method): 'embedding' embeds the predicted vectors and applies the contact
         region (closeness >= map_threshold is contact); 'keypoint_distance' places the learned objects where the
         frames show them and compares the robot's predicted segments with their centres (closeness = largest
-        1 - distance / contact distance over the segments, >= 0 is contact); where the frames place no object, or
-        no contact distance was learned, it falls back to 'embedding'. Returns dict(closeness (n,), collision (n,),
+        1 - distance / contact distance over the segments, >= 0 is contact); where no contact distance was learned
+        it falls back to 'embedding', and where the frames place no object it follows `unplaced_object`: fall back
+        to 'embedding' (the paper's route), or 'block' every joint vector (objects_placed 0; the planner then
+        refuses rather than trust a map that does not know where the object is). Returns dict(closeness (n,), collision (n,),
         clearance (n,) px or None, embedding (n, k) or None, external_seen (labels of the object side known), objects_placed (learned objects
         the frames place; -1 for 'embedding'), method (the route taken))."""
         if not hasattr(self, 'region_'):
@@ -633,13 +639,18 @@ class ArmStateLearner:
             centres = self.object_centres(frame, recent)
             placed = centres[np.isfinite(centres[:, 0])]
             # no contact distance learned (no contact frame placed the object): the route knows nothing to avoid
-            if len(placed) and len(self.rigid_pairs_) and self.segment_margins_.any():
+            learned = bool(len(self.rigid_pairs_) and self.segment_margins_.any())
+            if len(placed) and learned:
                 D = segment_point_distances(self._robot_points(q), self.rigid_pairs_,
                                             np.repeat(placed[None], len(q), axis=0))
                 clearance = (D - self.segment_margins_[None]).min(axis=1)
                 close = np.max(1.0 - D / np.maximum(self.segment_margins_, 1e-6)[None], axis=1)
                 return dict(closeness=np.maximum(close, -1e6), collision=clearance < 0.0, clearance=clearance,
                             embedding=None, external_seen=seen, objects_placed=len(placed), method=method)
+            if learned and self.unplaced_object == 'block':
+                # the object is somewhere this frame does not show: any joint vector may touch it
+                return dict(closeness=np.ones(len(q)), collision=np.ones(len(q), bool), clearance=None,
+                            embedding=None, external_seen=seen, objects_placed=0, method=method)
         P = np.repeat(filled[None], len(q), axis=0)
         P[:, self.self_labels_] = self._robot_points(q)
         Y = self.lle_transform(self.imputer_.transform(self._vectors_of_positions(P)))

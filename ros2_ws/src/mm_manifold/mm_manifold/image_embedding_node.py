@@ -158,6 +158,11 @@ class ImageEmbeddingNode(Node):
                                     "segment's contact distance (keypoint_distance; chosen through the graph by "
                                     "mm_bringup.tune_arm_reach)",
                                     min_value=0.0, max_value=0.5, read_only=True),
+            unplaced_object=declare(self, 'unplaced_object', 'block', "keypoint_distance map of a frame that does not "
+                                    "show the object where it is: 'block' every cell (dp_planner refuses the goal; "
+                                    "on scenes 17-20 the embedding fallback caused every contact) or 'embedding' "
+                                    "(fall back to the paper's route)", read_only=True,
+                                    additional_constraints='one of block, embedding'),
         )
         self.contact_label = declare(self, 'contact_label', 'arm', "Which contact sense labels the frames: 'arm' "
                                      "(any arm part, from joint torques) or 'hand' (the hand's touch sensor, the "

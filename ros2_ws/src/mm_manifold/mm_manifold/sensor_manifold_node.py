@@ -35,13 +35,14 @@ from typing import Dict, List, Optional
 
 import numpy as np
 from mm_common.node_utils import declare, reject_non_finite, run_node
+from mm_common.qos import LOOP_QOS  # RELIABLE, deep history: see mm_common/qos.py
 from mm_common.wheeled_sensors import SENSOR1, SENSOR2, SENSOR_NAMES
 from mm_msgs.msg import JacobianEstimate, ManifoldState
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Range
 from std_msgs.msg import Float64MultiArray
 
@@ -49,8 +50,6 @@ from mm_manifold.model_message import model_to_msg
 from mm_manifold.sensor_manifold import (SPACE_NONE, SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SensorManifoldModel,
                                          StateTracker, refit_problem)
 
-# Lockstep loop topics are RELIABLE (no sample may be lost, the controller waits for each state).
-LOOP_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 # The model is latched state (TRANSIENT_LOCAL, depth 1): a controller that starts or restarts after the fit still gets
 # the newest model at once; RELIABLE because a lost model would leave the controller unable to control.
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)

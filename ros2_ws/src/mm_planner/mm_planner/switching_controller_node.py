@@ -18,20 +18,19 @@ from typing import Optional
 import numpy as np
 from builtin_interfaces.msg import Time
 from mm_common.node_utils import declare, reject_non_finite, run_node
+from mm_common.qos import LOOP_QOS  # RELIABLE, deep history: see mm_common/qos.py
 from mm_msgs.msg import ControllerStatus, ManifoldState, SensorGoal
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
 from mm_msgs.srv import SetSensorGoal
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Bool, Float64MultiArray
 
 from mm_planner.wall_agent import Decision, Goal, Observation, WallAgent
 from mm_planner.wall_model import WallModel
 
-# The lockstep loop is RELIABLE end to end: a lost state or command would stall the loop.
-LOOP_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 # Goals and the model are latched state (TRANSIENT_LOCAL, depth 1): a controller started or restarted after they were
 # published still gets the newest; RELIABLE because a lost model would leave the controller unable to control.
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)

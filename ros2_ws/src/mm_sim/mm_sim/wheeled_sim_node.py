@@ -28,13 +28,13 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point
 from mm_common.node_utils import array_problem, check_parameters, declare, reject_input, run_node
+from mm_common.qos import LOOP_QOS  # RELIABLE, deep history: see mm_common/qos.py
 from mm_common.wheeled_sensors import SENSOR_NAMES
 from mm_msgs.srv import ResetPose
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Range
 from std_msgs.msg import Bool, Float64MultiArray
@@ -45,9 +45,6 @@ from mm_sim.wheeled_model import ProximitySensor, WheeledRobot, default_sensors
 COMMAND_TOPIC = 'wheeled/wheel_velocity_controller/commands'
 RESET_SERVICE = 'wheeled/reset'
 
-# Every topic of the lockstep loop is RELIABLE: the controller waits for each step's readings and the recorder must
-# not lose a message; depth 50 absorbs bursts when a subscriber is briefly slow.
-LOOP_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 
 
 def _stamp(nanoseconds: int) -> Time:
