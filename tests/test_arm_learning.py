@@ -14,6 +14,9 @@ from mm_manifold.embedding import ContactQuadric, ContactSphere
 from mm_manifold.keypoints import KeypointExtractor
 from mm_sim.arm_model import ArmModel
 
+# the robot's joint box (its description, as the nodes get it from their configuration)
+LIMITS = ArmModel().joint_limits
+
 
 @pytest.fixture(scope='module')
 def frames():
@@ -29,7 +32,8 @@ def frames():
 @pytest.fixture(scope='module')
 def fitted(frames):
     kps, joints, contact = frames
-    learner = ArmStateLearner(random_state=0).fit(kps[:220], joints[:220], contact[:220], np.arange(220) * 10)
+    learner = ArmStateLearner(LIMITS, random_state=0).fit(kps[:220], joints[:220], contact[:220],
+                                                          np.arange(220) * 10)
     return learner, kps[220:], contact[220:]
 
 
@@ -117,7 +121,7 @@ def test_fit_needs_contact_and_no_contact_frames(fitted):
     learner, _, _ = fitted
     kps = [learner.vectorizer_.extract(np.zeros((400, 400, 3), np.uint8))] * 30
     with pytest.raises(ValueError, match='contact'):
-        ArmStateLearner().fit(kps, np.zeros((30, 2)) - 1.0, np.zeros(30, bool))
+        ArmStateLearner(LIMITS).fit(kps, np.zeros((30, 2)) - 1.0, np.zeros(30, bool))
     with pytest.raises(ValueError):
         ArmStateLearner(joint_limits=((0, -1), (0, 1)))
 
@@ -125,7 +129,7 @@ def test_fit_needs_contact_and_no_contact_frames(fitted):
 @pytest.mark.parametrize('region', ['sphere', 'ellipsoid', 'quadric'])
 def test_each_contact_region_predicts_and_survives_saving(frames, region, tmp_path):
     kps, joints, contact = frames
-    learner = ArmStateLearner(region=region, random_state=0).fit(kps[:220], joints[:220], contact[:220])
+    learner = ArmStateLearner(LIMITS, region=region, random_state=0).fit(kps[:220], joints[:220], contact[:220])
     assert learner.selection_['model'] == region == learner.pca_selection_['model']
     assert isinstance(learner.region_, ContactQuadric if region == 'quadric' else ContactSphere)
     # the cross-validated threshold puts the region's surface at closeness 0
@@ -142,7 +146,7 @@ def test_each_contact_region_predicts_and_survives_saving(frames, region, tmp_pa
         a, b = learner.transform(k), loaded.transform(k)
         assert a['collision'] == b['collision'] and a['closeness'] == pytest.approx(b['closeness'], abs=1e-12)
     with pytest.raises(ValueError):
-        ArmStateLearner(region='cube')
+        ArmStateLearner(LIMITS, region='cube')
 
 
 def test_joint_features_make_a_two_link_arm_point_linear():
@@ -190,7 +194,7 @@ def moving():
     model = ArmModel(random_state=4)
     data = moving_object_exploration(model, 240, 10, rng=np.random.default_rng(4))
     kps = render_keypoints(model, data['joints'], data['object'], KeypointExtractor())
-    learner = ArmStateLearner(random_state=0, n_folds=3).fit(kps, data['joints'], data['contact'])
+    learner = ArmStateLearner(model.joint_limits, random_state=0, n_folds=3).fit(kps, data['joints'], data['contact'])
     return model, learner
 
 
@@ -273,7 +277,7 @@ def test_keypoint_distance_map_places_the_learned_object_where_the_frame_shows_i
     assert out['method'] == 'keypoint_distance' and out['objects_placed'] == 0 and out['collision'].all()
     assert careful.predict_collision_map(frame, method='keypoint_distance')['objects_placed'] == 1
     with pytest.raises(ValueError):
-        ArmStateLearner(unplaced_object='guess')
+        ArmStateLearner(LIMITS, unplaced_object='guess')
     # an earlier frame of the same scene places it
     out = learner.predict_collision_map(blind, recent=[frame], method='keypoint_distance')
     assert out['method'] == 'keypoint_distance' and out['new_frames'] == 2

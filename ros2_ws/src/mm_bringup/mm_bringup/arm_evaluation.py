@@ -156,7 +156,7 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
     kps_test = render_keypoints(model, test['joints'], test['object'], extractor)
     frames_ms = 1e3 * (time.perf_counter() - t0) / (n_train + n_test)
     t0 = time.perf_counter()
-    learner = ArmStateLearner(**(learner_params or {})).fit(kps_train, train['joints'], train[label])
+    learner = ArmStateLearner(model.joint_limits, **(learner_params or {})).fit(kps_train, train['joints'], train[label])
     fit_s = time.perf_counter() - t0
     X, c = learner.train_vectors_, train[label]
     t0 = time.perf_counter()

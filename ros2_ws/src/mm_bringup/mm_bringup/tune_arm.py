@@ -41,7 +41,7 @@ def tune_map(n_train: int, extractor) -> dict:
     kps = render_keypoints(model, train['joints'], train['object'], extractor)
     rows = []
     for touch, label in (('hand', 'contact'), ('any_part', 'any_contact')):
-        learner = ArmStateLearner(**LEARNER_PARAMS).fit(kps, train['joints'], train[label])
+        learner = ArmStateLearner(model.joint_limits, **LEARNER_PARAMS).fit(kps, train['joints'], train[label])
         for threshold in MAP_THRESHOLDS:
             learner.map_threshold = threshold
             r = plan_before_moving(learner, model, MAP_PLACEMENTS, MAP_SEED, extractor, log=lambda *_: None)

@@ -46,7 +46,7 @@ def main(argv=None) -> int:
     rows = []
     settings = [('embedding', None)] + [('keypoint_distance', q) for q in QUANTILES]
     for method, quantile in settings:
-        learner = ArmStateLearner(**LEARNER_PARAMS, margin_quantile=quantile or 0.0).fit(
+        learner = ArmStateLearner(model.joint_limits, **LEARNER_PARAMS, margin_quantile=quantile or 0.0).fit(
             keypoints, frames['joints'], frames['any_contact'])
         out = plan_before_moving(learner, model, args.placements, seed=TUNE_PLACEMENT_SEED, extractor=extractor,
                                  log=lambda *a: None, method=method)

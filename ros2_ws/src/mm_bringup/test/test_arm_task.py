@@ -30,7 +30,7 @@ def test_plan_before_moving_keeps_the_model_and_scores_every_cell():
     data = moving_object_exploration(model, 200, 10, rng=np.random.default_rng(7))
     ext = KeypointExtractor()
     kps = render_keypoints(model, data['joints'], data['object'], ext)
-    learner = ArmStateLearner(n_folds=3).fit(kps, data['joints'], data['contact'])
+    learner = ArmStateLearner(model.joint_limits, n_folds=3).fit(kps, data['joints'], data['contact'])
     out = plan_before_moving(learner, model, n_placements=2, seed=70, extractor=ext, log=lambda *_: None)
     assert out['plan_placements'] == 2 and out['plan_new_frames_per_placement'] == 1
     for key in ('any', 'hand'):

@@ -85,7 +85,6 @@ REPRESENTATIONS = ('relative', 'absolute')
 MAP_METHODS = ('keypoint_distance', 'embedding')
 UNPLACED_POLICIES = ('embedding', 'block')      # keypoint-distance map of a frame that does not place the object
 STATIC, SELF, EXTERNAL, UNCLEAR = 0, 1, 2, 3     # label roles
-DEFAULT_JOINT_LIMITS = ((-3.2, -0.8), (0.0, 2.2))
 _VECTORIZER_PARAMS = ('n_labels', 'max_features', 'scale', 'match_ratio', 'max_pixel_shift', 'n_frame_neighbors',
                       'min_frame_fraction', 'exemplar_spacing', 'imputation', 'n_impute_neighbors', 'max_fit_frames',
                       'random_state', 'global_match_ratio')
@@ -275,8 +274,10 @@ def label_roles(raw: np.ndarray, joints: np.ndarray, min_motion: float = 3.0, se
 class ArmStateLearner:
     """Learn the arm's image state from frames and predict collisions (module docstring).
 
-    Parameters: n_components (LLE and PCA dimensions), n_neighbors (LLE), lle_method, region ('auto', or one of
-    'sphere' (the paper's), 'ellipsoid', 'quadric'), grid_shape (rows, cols), joint_limits, cell_min_frames,
+    Parameters: joint_limits ((lo0, hi0), (lo1, hi1)) [rad], the robot's joint box from its description (no
+    default: a robot constant has no place in learning code); n_components (LLE and PCA dimensions), n_neighbors
+    (LLE), lle_method, region ('auto', or one of 'sphere' (the paper's), 'ellipsoid', 'quadric'), grid_shape (rows,
+    cols), cell_min_frames,
     cell_collision_fraction, map_margin, vectorizer_params (dict for KeypointVectorizer), random_state, n_folds
     (cross-validation of the region), representation ('relative' or 'absolute'), self_r2 and external_r2 (label
     roles), min_motion [px] (below: a static label), recent_frames (how many preceding frames may stand in for a
@@ -291,8 +292,8 @@ class ArmStateLearner:
     collision_map_ (rows, cols) bool and closeness_map_ (rows, cols) over the exploration frames.
     """
 
-    def __init__(self, n_components: int = 3, n_neighbors: int = 20, lle_method: str = 'standard',
-                 region: str = 'auto', grid_shape=(8, 12), joint_limits=DEFAULT_JOINT_LIMITS,
+    def __init__(self, joint_limits, n_components: int = 3, n_neighbors: int = 20, lle_method: str = 'standard',
+                 region: str = 'auto', grid_shape=(8, 12),
                  cell_min_frames: int = 3, cell_collision_fraction: float = 0.1, map_margin: float = 0.1,
                  vectorizer_params: Optional[Dict] = None, random_state: Optional[int] = 0, n_folds: int = 5,
                  representation: str = 'relative', self_r2: float = 0.9, external_r2: float = 0.3,
@@ -621,9 +622,10 @@ class ArmStateLearner:
         1 - distance / contact distance over the segments, >= 0 is contact); where no contact distance was learned
         it falls back to 'embedding', and where the frames place no object it follows `unplaced_object`: fall back
         to 'embedding' (the paper's route), or 'block' every joint vector (objects_placed 0; the planner then
-        refuses rather than trust a map that does not know where the object is). Returns dict(closeness (n,), collision (n,),
-        clearance (n,) px or None, embedding (n, k) or None, external_seen (labels of the object side known), objects_placed (learned objects
-        the frames place; -1 for 'embedding'), method (the route taken))."""
+        refuses rather than trust a map that does not know where the object is). Returns dict(closeness (n,),
+        collision (n,), clearance (n,) px or None, embedding (n, k) or None, external_seen (labels of the object side
+        known), objects_placed (learned objects the frames place; -1 for 'embedding', 0 for 'block'), method (the
+        route taken))."""
         if not hasattr(self, 'region_'):
             raise RuntimeError('ArmStateLearner is not fitted')
         method = method or self.map_method

@@ -230,8 +230,8 @@ def run(output_dir: Path, quick: bool) -> dict:
     learner = ev['_learner']
     out['learner_fit_s'] = ev['learner_fit_s']
     n_plan = 8 if quick else PLACEMENTS
-    whole_arm = ArmStateLearner(**LEARNER_PARAMS).fit(ev['_kps_train'], ev['_train']['joints'],
-                                                       ev['_train']['any_contact'])
+    whole_arm = ArmStateLearner(ev['_model'].joint_limits, **LEARNER_PARAMS).fit(
+        ev['_kps_train'], ev['_train']['joints'], ev['_train']['any_contact'])
     out['plan_segment_margins_px'] = dict(zip(('min', 'median', 'max'), np.percentile(
         whole_arm.segment_margins_, [0, 50, 100]).tolist())) if len(whole_arm.segment_margins_) else None
     out.update(plan_before_moving(whole_arm, ev['_model'], n_plan, extractor=extractor))
