@@ -31,11 +31,12 @@ from rcl_interfaces.msg import Parameter as ParameterMsg, ParameterType, Paramet
 from rcl_interfaces.srv import GetParameters, ListParameters, SetParameters
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, JointState, Range
-from std_msgs.msg import Bool, Float64MultiArray, Header
+from std_msgs.msg import Bool, Float64MultiArray, Header, String
 
 from mm_bringup.process_graph import NodeProcess, ProcessGraph
 from mm_common.rosbag import iter_messages
 from mm_common.ros_harness import RosHarness
+from mm_sim.arm_model import ArmModel
 
 FAR_FUTURE_SEC = 2**31 - 1
 HUGE_LENGTH = 100_000
@@ -528,6 +529,8 @@ def _joints(k: int) -> JointState:
 
 
 ARM_START = (-2.0, 1.1)        # inside the arm's joint limits [-3.2, -0.8] x [0.0, 2.2]
+# What arm_sim latches on arm/robot_description; sent before every frame (the node ignores a repeat of the same box).
+ARM_DESCRIPTION = String(data=ArmModel().robot_description(4.0))
 GOAL = SensorGoal(sensor_group=SensorGoal.SENSOR2, reading=[0.2, 0.2], tolerance=0.01)
 
 SPECS = {
@@ -560,7 +563,8 @@ SPECS = {
         frame=lambda k: [('arm/camera/image_raw', _image(k)), ('arm/joint_states', _joints(k)),
                          ('arm/contact', Contact(header=_header(k), in_contact=False))],
         output=('arm/embedding/state', EmbeddingState), processed=_stamped_output,
-        templates={'arm/embedding/map_request': _header(0)},
+        before_frame=lambda k: [('arm/robot_description', ARM_DESCRIPTION)],
+        templates={'arm/embedding/map_request': _header(0), 'arm/robot_description': ARM_DESCRIPTION},
         extra={'arm/camera/image_raw': [
             ('1x1 image', Image(header=_header(0), height=1, width=1, encoding='rgb8', step=3, data=b'\x00\x00\x00')),
             ('step smaller than width', Image(header=_header(0), height=400, width=400, encoding='rgb8', step=10,
@@ -572,8 +576,10 @@ SPECS = {
         frame=lambda k: [('arm/joint_states', _joints(k)), ('arm/contact', Contact(header=_header(k))),
                          ('arm/embedding/state', EmbeddingState(header=_header(k), keypoints_detected=20))],
         output=('arm/joint_position_controller/commands', Float64MultiArray), processed=_any_output,
+        before_frame=lambda k: [('arm/robot_description', ARM_DESCRIPTION)],
         templates={'arm/goal': Float64MultiArray(data=[-1.5, 1.5]),
-                   'arm/embedding/collision_map': CollisionMap(header=_header(0))},
+                   'arm/embedding/collision_map': CollisionMap(header=_header(0)),
+                   'arm/robot_description': ARM_DESCRIPTION},
         requests={'arm/set_goal': SetJointGoal.Request(positions=[-1.5, 1.5])},
         extra={'arm/embedding/collision_map': [('joint0_limits=[-3.2]', CollisionMap(
             header=_header(0), rows=2, cols=2, joint0_limits=[-3.2], joint1_limits=[0.0, 1.0],

@@ -11,7 +11,7 @@ from mm_common.node_utils import rejected_inputs
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, JointState
-from std_msgs.msg import Header
+from std_msgs.msg import Header, String
 
 from mm_bringup.arm_evaluation import sample_exploration_joints
 from mm_manifold.arm_learning import ArmStateLearner
@@ -30,7 +30,9 @@ def image_msg(frame, k, encoding='rgb8'):
     return img
 
 
-def make_rig(ros, params):
+def make_rig(ros, params, box=None):
+    """The node, publishers of its inputs and what it published; the arm_sim's robot description (over `box`, the
+    simulated arm's joint box by default) is latched and taken before this returns."""
     node = ros.add(ImageEmbeddingNode(context=ros.context, parameter_overrides=[
         Parameter(k, value=v) for k, v in params.items()]))
     client = ros.node('embedding_test_client')
@@ -40,8 +42,13 @@ def make_rig(ros, params):
     pubs = dict(image=client.create_publisher(Image, 'arm/camera/image_raw', QOS),
                 joints=client.create_publisher(JointState, 'arm/joint_states', QOS),
                 contact=client.create_publisher(Contact, 'arm/contact', QOS),
-                request=client.create_publisher(Header, 'arm/embedding/map_request', QOS))
+                request=client.create_publisher(Header, 'arm/embedding/map_request', QOS),
+                description=client.create_publisher(String, 'arm/robot_description', LATCHED))
     assert ros.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), timeout=10)
+    arm = ArmModel(random_state=0) if box is None else ArmModel(joint_limits=box, random_state=0)
+    pubs['description'].publish(String(data=arm.robot_description(4.0)))
+    assert ros.spin_until(lambda: node.learner_params['joint_limits'] is not None, timeout=10)
+    assert np.allclose(node.learner_params['joint_limits'], arm.joint_limits)
     return node, pubs, seen
 
 
@@ -130,13 +137,14 @@ def test_learns_online_latches_the_map_saves_and_reloads(tmp_path):
         assert seen['map'][-1].header.stamp.sec == 5 and list(seen['map'][-1].collision) == list(m.collision)
     finally:
         ros.close()
-    # a model for another grid is not used
-    ros = RosHarness()
-    try:
-        node, _, _ = make_rig(ros, {'model_path': str(model_path), 'grid_rows': 6})
-        assert node.model is None
-    finally:
-        ros.close()
+    # a model for another grid or another robot's joint box is not used
+    for params, box in (({'grid_rows': 6}, None), ({}, ((-3.0, -0.8), (0.0, 2.2)))):
+        ros = RosHarness()
+        try:
+            node, _, _ = make_rig(ros, {'model_path': str(model_path), **params}, box)
+            assert node.model is None
+        finally:
+            ros.close()
 
 
 def test_a_corrupt_model_file_means_learning_again(tmp_path):
@@ -171,6 +179,13 @@ def test_malformed_inputs_and_parameters_are_rejected_and_the_node_keeps_running
         old.stamp.sec = 1
         pubs['request'].publish(old)                         # older than every frame kept
         assert ros.spin_until(lambda: rejected_inputs(node).get('arm/embedding/map_request', 0) == 1)
+        # the joint box is taken once: a malformed description or another robot's box is refused
+        reversed_limits = '<robot><joint type="revolute" name="a"><limit lower="1" upper="0"/></joint></robot>'
+        other_robot = ArmModel(joint_limits=((-1.0, 0.0), (0.0, 1.0)), object_position=(200.0, 100.0))
+        for i, text in enumerate((reversed_limits, other_robot.robot_description(1.0))):
+            pubs['description'].publish(String(data=text))
+            assert ros.spin_until(lambda: rejected_inputs(node).get('arm/robot_description', 0) == i + 1)
+        assert np.allclose(node.learner_params['joint_limits'], ArmModel().joint_limits)
         for name, value in (('min_training_frames', 2000), ('max_training_frames', 100), ('random_seed', 3),
                             ('grid_rows', 4), ('model_path', '/tmp/x.npz'), ('cell_collision_fraction', 0.0)):
             assert not node.set_parameters([Parameter(name, value=value)])[0].successful, name

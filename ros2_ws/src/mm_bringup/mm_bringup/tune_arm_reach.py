@@ -24,6 +24,7 @@ import tempfile
 from pathlib import Path
 
 from mm_bringup.bench import arm_reach
+from mm_planner.arm_agent import EXPLORATION_STEPS
 
 TUNE_SCENES = (8, 9)
 TUNE_PLACEMENT_SEED0 = 90_000
@@ -66,7 +67,7 @@ def main(argv=None) -> int:
     parser.add_argument('--stage', choices=('exploration', 'map', 'both'), default='both')
     args = parser.parse_args(argv)
     result = dict(exploration_rows=[], map_rows=[])
-    exploration = arm_reach.EXPLORATION_STEPS
+    exploration = EXPLORATION_STEPS
     if args.stage in ('exploration', 'both'):
         rows = [run_one(scene, EXPLORATION_PLACEMENT_SEED0, 10, n, {})
                 for n in EXPLORATION_CANDIDATES for scene in EXPLORATION_SCENES]

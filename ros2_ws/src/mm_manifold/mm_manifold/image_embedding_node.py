@@ -6,8 +6,10 @@ builds the collision map the planner needs for the object where the current fram
 Subscribes only to what the robot senses: `arm/camera/image_raw` (sensor_msgs/Image rgb8/bgr8/mono8),
 `arm/joint_states` and `arm/contact` (mm_msgs/Contact, stamped with its frame: the contact sensed in the frame's pose
 is the frame's "contact" label; `contact_label` 'arm' (default) takes the contact of any arm part, which a real arm
-senses from its joint torques, 'hand' the hand's touch sensor alone), plus `arm/embedding/map_request` (std_msgs/Header from
-the planner: the stamp of the frame a map is needed of). Never ground truth.
+senses from its joint torques, 'hand' the hand's touch sensor alone), plus `arm/embedding/map_request`
+(std_msgs/Header from the planner: the stamp of the frame a map is needed of), and the robot's joint box from `arm/robot_description`
+(std_msgs/String URDF, latched; frames are collected before it comes, the first fit waits for it). Never ground
+truth.
 
 Every image: SIFT keypoints (mm_manifold.keypoints). A frame whose joint state and touch reading of the same stamp
 have arrived joins the training set. When `min_training_frames` frames are in, a background thread fits
@@ -26,8 +28,9 @@ map) with `header.stamp` = the frame it was built from; the log line says how ma
 Publishes `arm/embedding/state` (mm_msgs/EmbeddingState) for every image, with `model_ready` false before the first
 fit, so a lockstep explorer can pace itself on it.
 
-With `model_path` set, each fitted model is written there atomically (np.savez + JSON, no pickle) and loaded at start;
-a file that cannot be read or does not fit this node's grid and limits is logged and the node learns from scratch.
+With `model_path` set, each fitted model is written there atomically (np.savez + JSON, no pickle) and loaded once the
+robot description has come; a file that cannot be read or does not fit this node's grid and the robot's joint box
+is logged and the node learns from scratch.
 Every input is validated; a bad one is dropped with a throttled log line and the node keeps running.
 """
 from __future__ import annotations
@@ -41,13 +44,14 @@ from typing import Dict, Optional
 import cv2
 import numpy as np
 from mm_common.node_utils import check_parameters, declare, ordered, reject_input, run_node
+from mm_common.robot_description import joint_box
 from mm_msgs.msg import CollisionMap, Contact, EmbeddingState
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Image, JointState
-from std_msgs.msg import Header
+from std_msgs.msg import Header, String
 
 from mm_manifold.arm_learning import ArmStateLearner, ModelFileError
 from mm_manifold.keypoints import KeypointExtractor
@@ -59,6 +63,10 @@ MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability
                      history=HistoryPolicy.KEEP_LAST)
 # Map requests: RELIABLE (the planner waits for the answer), volatile (a request is about the present frame only).
 REQUEST_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+# The robot description is latched state: TRANSIENT_LOCAL, so this node gets it whenever it starts.
+DESCRIPTION_QOS = MAP_QOS
+# Stands in for the robot's joint box while the settings are checked before arm/robot_description has come.
+UNIT_BOX = ((0.0, 1.0), (0.0, 1.0))
 ENCODINGS = {'rgb8': 3, 'bgr8': 3, 'mono8': 1}
 MIN_IMAGE_SIZE = 16          # px: smaller images carry no usable keypoints (and break the half-scale SIFT pass)
 MAX_IMAGE_SIZE = 4096
@@ -89,6 +97,16 @@ def image_to_array(msg: Image, expected_size: Optional[int] = None) -> np.ndarra
         return np.ascontiguousarray(rows)
     img = rows.reshape(msg.height, msg.width, 3)
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if msg.encoding == 'bgr8' else np.ascontiguousarray(img)
+
+
+def learner_problem(params: dict) -> str:
+    """'' if ArmStateLearner accepts these settings, else why not (UNIT_BOX while the joint box is unknown)."""
+    try:
+        ArmStateLearner(**{**params, 'joint_limits': UNIT_BOX if params['joint_limits'] is None
+                           else params['joint_limits']})
+    except ValueError as exc:
+        return str(exc)
+    return ''
 
 
 def model_score(learner: ArmStateLearner) -> float:
@@ -138,10 +156,7 @@ class ImageEmbeddingNode(Node):
                                 read_only=True),
                         declare(self, 'grid_cols', 12, 'Joint grid cols (joint 1)', min_value=1, max_value=200,
                                 read_only=True)),
-            joint_limits=(declare(self, 'joint0_limits', [-3.2, -0.8], 'shoulder_roll [min, max] rad',
-                                  read_only=True),
-                          declare(self, 'joint1_limits', [0.0, 2.2], 'shoulder_pitch [min, max] rad',
-                                  read_only=True)),
+            joint_limits=None,          # the robot's joint box, from arm/robot_description
             map_method=declare(self, 'map_method', 'keypoint_distance', "Collision map of a new placement: "
                                "'keypoint_distance' (the learned object placed where the frame shows it, against "
                                "the robot's predicted segments with the contact distances learned from the touch "
@@ -175,7 +190,9 @@ class ImageEmbeddingNode(Node):
             raise ValueError(f'min_training_frames={self.min_training_frames} must be <= '
                              f'max_training_frames={self.max_training_frames}')
         self.learner_params = p
-        ArmStateLearner(**p)        # validate the combination (grid, limits) now, not in the first fit
+        problem = learner_problem(p)            # validate the settings now, not in the first fit
+        if problem:
+            raise ValueError(problem)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.extractor = KeypointExtractor()
@@ -205,12 +222,12 @@ class ImageEmbeddingNode(Node):
         self.create_subscription(JointState, 'arm/joint_states', self._on_joints, LOOP_QOS)
         self.create_subscription(Contact, 'arm/contact', self._on_contact, LOOP_QOS)
         self.create_subscription(Header, 'arm/embedding/map_request', self._on_map_request, REQUEST_QOS)
+        self.create_subscription(String, 'arm/robot_description', self._on_robot_description, DESCRIPTION_QOS)
         # Wall-clock timer: picks up a finished fit even while sim time stands still (lockstep loop waiting).
         self.create_timer(0.1, self._install_fitted, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        if self.model_path:
-            self._load_model()
         self.get_logger().info(f'image_embedding ready: first fit after {self.min_training_frames} frames, '
-                               f'refit every {self.refit_every}, model_path={self.model_path or "(none)"}')
+                               f'refit every {self.refit_every}, model_path={self.model_path or "(none)"}; the joint '
+                               'box comes from arm/robot_description')
 
     # --- parameters -------------------------------------------------------------------------------------------
     def _on_set_parameters(self, params) -> SetParametersResult:
@@ -220,10 +237,9 @@ class ImageEmbeddingNode(Node):
         learner_update = {p.name: p.value for p in params
                           if p.name in ('cell_min_frames', 'cell_collision_fraction', 'map_margin')}
         if learner_update:
-            try:
-                ArmStateLearner(**{**self.learner_params, **learner_update})
-            except ValueError as exc:
-                return SetParametersResult(successful=False, reason=str(exc))
+            problem = learner_problem({**self.learner_params, **learner_update})
+            if problem:
+                return SetParametersResult(successful=False, reason=problem)
         for p in params:
             if p.name == 'min_training_frames':
                 self.min_training_frames = int(p.value)
@@ -238,6 +254,32 @@ class ImageEmbeddingNode(Node):
         self.learner_params.update(learner_update)        # used from the next fit on
         return SetParametersResult(successful=True)
 
+    # --- the robot ----------------------------------------------------------------------------------------------
+    def _on_robot_description(self, msg: String) -> None:
+        """Take the joint box from the robot's URDF once; a later description with another box is refused (a model
+        learned over one box cannot serve another: restart the node for a new robot)."""
+        try:
+            limits = joint_box(msg.data, 2)
+        except ValueError as exc:
+            reject_input(self, 'arm/robot_description', str(exc))
+            return
+        known = self.learner_params['joint_limits']
+        if known is not None:
+            if not np.allclose(known, limits):
+                reject_input(self, 'arm/robot_description', f'joint box {limits.tolist()} differs from the one this '
+                                                            f'node learns over, {known.tolist()}; restart the node '
+                                                            'for a new robot')
+            return
+        problem = learner_problem({**self.learner_params, 'joint_limits': limits})
+        if problem:
+            reject_input(self, 'arm/robot_description', problem)
+            return
+        self.learner_params['joint_limits'] = limits
+        self.get_logger().info(f'joint box from arm/robot_description: {limits.tolist()} rad')
+        if self.model_path:
+            self._load_model()
+        self._maybe_fit()
+
     # --- persistence ------------------------------------------------------------------------------------------
     def _load_model(self) -> None:
         path = Path(self.model_path)
@@ -250,7 +292,7 @@ class ImageEmbeddingNode(Node):
             self.get_logger().error(f'cannot use the saved model, learning from scratch: {exc}')
             return
         want_shape = tuple(self.learner_params['grid_shape'])
-        want_limits = np.asarray(self.learner_params['joint_limits'], dtype=float)
+        want_limits = self.learner_params['joint_limits']
         if model.grid_shape != want_shape or not np.allclose(model.joint_limits, want_limits):
             self.get_logger().error(f'saved model {path} is for a {model.grid_shape} grid over '
                                     f'{model.joint_limits.tolist()}, this node uses {want_shape} over '
@@ -402,6 +444,10 @@ class ImageEmbeddingNode(Node):
         else:
             due = self.refit_every > 0 and since >= self.refit_every
         if not due:
+            return
+        if self.learner_params['joint_limits'] is None:
+            self.get_logger().warn('enough frames to learn, but no joint box yet: waiting for arm/robot_description',
+                                   throttle_duration_sec=5.0)
             return
         snapshot = {k: list(v) for k, v in self.frames.items()}
         self._frames_at_last_attempt = n

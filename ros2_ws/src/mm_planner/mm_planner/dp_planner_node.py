@@ -5,9 +5,11 @@ map of the current frame, before moving, and drive the arm cell by cell.
     ./mm run mm_planner dp_planner --ros-args -p use_sim_time:=true -p exploration_steps:=500
 
 Subscribes `arm/joint_states`, `arm/contact` (mm_msgs/Contact: the hand's touch sensor, stamped with its frame),
-`arm/embedding/state` (pacing only) and `arm/embedding/collision_map` (mm_msgs/CollisionMap, TRANSIENT_LOCAL,
-stamped with the frame it was built from); goal as joint angles on `arm/goal` (std_msgs/Float64MultiArray
-[shoulder_roll, shoulder_pitch] rad, TRANSIENT_LOCAL) or through the `arm/set_goal` service (mm_msgs/SetJointGoal).
+`arm/embedding/state` (pacing only), `arm/embedding/collision_map` (mm_msgs/CollisionMap, TRANSIENT_LOCAL, stamped
+with the frame it was built from) and `arm/robot_description` (std_msgs/String URDF, TRANSIENT_LOCAL: the joint box;
+nothing is explored or planned before it comes, and a map or topic goal that came earlier is acted on then); goal as
+joint angles on `arm/goal` (std_msgs/Float64MultiArray [shoulder_roll, shoulder_pitch] rad, TRANSIENT_LOCAL) or
+through the `arm/set_goal` service (mm_msgs/SetJointGoal).
 Either kind of goal is stamped with the node's clock (sim time) when accepted; the service's reply says
 `goal_stamp=<sec>.<nanosec>` and every ControllerStatus on `arm/planner/status` carries it in `goal_stamp`.
 Publishes joint targets on `arm/joint_position_controller/commands`, its phase on `arm/planner/status`, and
@@ -29,7 +31,8 @@ from typing import Optional
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from mm_common.node_utils import check_parameters, declare, ordered_pair, reject_input, run_node
+from mm_common.node_utils import check_parameters, declare, reject_input, run_node
+from mm_common.robot_description import joint_box
 from mm_msgs.msg import CollisionMap, Contact, ControllerStatus, EmbeddingState
 from mm_msgs.srv import SetJointGoal
 from rcl_interfaces.msg import SetParametersResult
@@ -37,13 +40,15 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, Header
+from std_msgs.msg import Float64MultiArray, Header, String
 
-from mm_planner.arm_agent import PHASE_LEARNING, PHASE_NAMES, PHASE_PLANNING, ArmAgent, ArmObservation
+from mm_planner.arm_agent import (EXPLORATION_STEPS, PHASE_LEARNING, PHASE_NAMES, PHASE_PLANNING, ArmAgent,
+                                  ArmObservation)
 
 # Lockstep loop: RELIABLE, a lost joint state or command would stall the loop.
 LOOP_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
-# Goals and the collision map are latched state: TRANSIENT_LOCAL so whoever starts later still gets the latest.
+# Goals, the collision map and the robot description are latched state: TRANSIENT_LOCAL so whoever starts later
+# still gets the latest.
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                          history=HistoryPolicy.KEEP_LAST)
 # Map requests: RELIABLE (the planner waits for the answer), volatile (a request is about the present frame only).
@@ -73,15 +78,13 @@ def cells_problem(rows: int, cols: int, lim0, lim1, tolerance: float) -> str:
 class DpPlannerNode(Node):
     def __init__(self, **node_kwargs):
         super().__init__('dp_planner', **node_kwargs)
-        lim0 = declare(self, 'joint0_limits', [-3.2, -0.8], 'shoulder_roll [min, max] rad', read_only=True)
-        lim1 = declare(self, 'joint1_limits', [0.0, 2.2], 'shoulder_pitch [min, max] rad', read_only=True)
         rows = declare(self, 'grid_rows', 8, 'Joint grid rows (joint 0)', min_value=1, max_value=200, read_only=True)
         cols = declare(self, 'grid_cols', 12, 'Joint grid cols (joint 1)', min_value=1, max_value=200,
                        read_only=True)
         agent_params = dict(
-            exploration_steps=declare(self, 'exploration_steps', 1000, 'Random-motion commands before learning (0 = '
-                                      'none: use a map that is already there)', min_value=0, max_value=1000000,
-                                      read_only=True),
+            exploration_steps=declare(self, 'exploration_steps', EXPLORATION_STEPS, 'Random-motion commands before '
+                                      'learning (0 = none: use a map that is already there)', min_value=0,
+                                      max_value=1000000, read_only=True),
             exploration_seed=declare(self, 'exploration_seed', 0, 'Seed of the exploration targets', min_value=0,
                                      max_value=2**31 - 1, read_only=True),
             contact_share=declare(self, 'contact_share', 0.25, 'Share of exploration targets drawn near '
@@ -116,17 +119,14 @@ class DpPlannerNode(Node):
                                         'more', min_value=1.0, max_value=3600.0)
         self.map_timeout = declare(self, 'map_timeout', 60.0, 'Wall seconds a goal waits for a collision map of the '
                                    'current frame before it FAILS', min_value=0.1, max_value=3600.0)
-        for check in (ordered_pair('joint0_limits'), ordered_pair('joint1_limits')):
-            problem = check({'joint0_limits': lim0, 'joint1_limits': lim1})
-            if problem or not all(math.isfinite(v) for v in [*lim0, *lim1]):
-                raise ValueError(f'bad joint limits: {problem or "values must be finite"}')
-        problem = cells_problem(rows, cols, lim0, lim1, agent_params['arrival_tolerance'])
-        if problem:
-            raise ValueError(problem)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
-        self.agent = ArmAgent((lim0, lim1), (rows, cols), **agent_params)
-        self.grid = self.agent.grid
+        # The agent needs the robot's joint box: it is built when arm/robot_description comes.
+        self.grid_shape = (rows, cols)
+        self.agent_params = agent_params
+        self.agent: Optional[ArmAgent] = None
+        self.grid = None
+        self.waiting_latched: dict = {}   # the latest map / topic goal that came before the robot description
         self.joints: dict = {}            # frame stamp -> joints, until the frame is acted on
         self.contacts: dict = {}          # frame stamp -> touch reading
         self.embedded = set()
@@ -145,18 +145,53 @@ class DpPlannerNode(Node):
         self.create_subscription(CollisionMap, 'arm/embedding/collision_map', self._on_map, LATCHED_QOS)
         self.create_subscription(Float64MultiArray, 'arm/goal', self._on_goal_msg, LATCHED_QOS)
         self.create_service(SetJointGoal, 'arm/set_goal', self._on_set_goal)
+        self.create_subscription(String, 'arm/robot_description', self._on_robot_description, LATCHED_QOS)
         # Wall-clock timer: embedding, learning and map timeouts must fire while sim time stands still.
         self.create_timer(0.2, self._on_wall_timer, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self._publish_transitions()
         self.get_logger().info(f'dp_planner ready: {rows}x{cols} grid, exploring '
-                               f'{agent_params["exploration_steps"]} steps')
+                               f'{agent_params["exploration_steps"]} steps once arm/robot_description gives the '
+                               'joint box')
+
+    # --- the robot --------------------------------------------------------------------------------------------
+    def _on_robot_description(self, msg: String) -> None:
+        """Build the agent over the robot's joint box (once: a description with another box is refused, restart the
+        node for a new robot); then act on a map or goal that came earlier."""
+        try:
+            limits = joint_box(msg.data, 2)
+        except ValueError as exc:
+            reject_input(self, 'arm/robot_description', str(exc))
+            return
+        if self.agent is not None:
+            if not np.allclose(limits, self.grid.limits):
+                reject_input(self, 'arm/robot_description', f'joint box {limits.tolist()} differs from the one this '
+                                                            f'node plans over, {self.grid.limits.tolist()}; restart '
+                                                            'the node for a new robot')
+            return
+        problem = cells_problem(*self.grid_shape, limits[0], limits[1], self.agent_params['arrival_tolerance'])
+        if problem:
+            reject_input(self, 'arm/robot_description', problem)
+            return
+        self.agent = ArmAgent(limits, self.grid_shape, **self.agent_params)
+        self.grid = self.agent.grid
+        self.get_logger().info(f'joint box from arm/robot_description: {limits.tolist()} rad')
+        self._publish_transitions()
+        waiting, self.waiting_latched = self.waiting_latched, {}
+        if 'map' in waiting:
+            self._on_map(waiting['map'])
+        if 'goal' in waiting:
+            self._on_goal_msg(waiting['goal'])
+        self._try_act()
 
     # --- parameters -------------------------------------------------------------------------------------------
     def _on_set_parameters(self, params) -> SetParametersResult:
-        result = check_parameters(self, params, [lambda v: cells_problem(
+        result = check_parameters(self, params, [lambda v: '' if self.grid is None else cells_problem(
             self.grid.rows, self.grid.cols, self.grid.limits[0], self.grid.limits[1], v.get('arrival_tolerance'))])
         if not result.successful:
             return result
+        for name in ('max_execution_steps', 'arrival_tolerance'):
+            value = next((p.value for p in params if p.name == name), None)
+            if value is not None:
+                self.agent_params[name] = value           # for an agent built later
         for p in params:
             if p.name == 'wait_for_embedding':
                 self.wait_for_embedding = bool(p.value)
@@ -166,9 +201,9 @@ class DpPlannerNode(Node):
                 self.learning_timeout = float(p.value)
             elif p.name == 'map_timeout':
                 self.map_timeout = float(p.value)
-            elif p.name == 'max_execution_steps':
+            elif p.name == 'max_execution_steps' and self.agent is not None:
                 self.agent.max_execution_steps = int(p.value)
-            elif p.name == 'arrival_tolerance':
+            elif p.name == 'arrival_tolerance' and self.agent is not None:
                 self.agent.arrival_tolerance = float(p.value)
         return SetParametersResult(successful=True)
 
@@ -219,7 +254,7 @@ class DpPlannerNode(Node):
         if stamp is None:
             return
         self.contacts[stamp] = bool(msg.in_contact)
-        if msg.in_contact and self.agent.phase_name == 'EXECUTING':
+        if msg.in_contact and self.agent is not None and self.agent.phase_name == 'EXECUTING':
             self.contacts_while_executing += 1
             self.get_logger().warn(f'contact while executing ({self.contacts_while_executing} so far)',
                                    throttle_duration_sec=1.0)
@@ -249,6 +284,9 @@ class DpPlannerNode(Node):
         return ''
 
     def _on_map(self, msg: CollisionMap) -> None:
+        if self.agent is None:
+            self.waiting_latched['map'] = msg           # checked once the joint box is known
+            return
         problem = self.map_problem(msg)
         now = self.get_clock().now().nanoseconds
         if not problem and stamp_ns(msg.header.stamp) > now + FUTURE_MARGIN_NS:
@@ -266,7 +304,8 @@ class DpPlannerNode(Node):
         self._try_act()
 
     def _accept_goal(self, values, source: str) -> str:
-        problem = self.agent.validate_goal(values)
+        problem = ('no robot description yet (arm/robot_description): the joint box is unknown' if self.agent is None
+                   else self.agent.validate_goal(values))
         if problem:
             reject_input(self, source, problem)
             return problem
@@ -280,6 +319,9 @@ class DpPlannerNode(Node):
         return ''
 
     def _on_goal_msg(self, msg: Float64MultiArray) -> None:
+        if self.agent is None:
+            self.waiting_latched['goal'] = msg          # latched: it is meant for when the planner can plan
+            return
         self._accept_goal(list(msg.data), 'arm/goal')
 
     def _on_set_goal(self, request: SetJointGoal.Request, response: SetJointGoal.Response):
@@ -294,6 +336,10 @@ class DpPlannerNode(Node):
         return response
 
     def _on_wall_timer(self) -> None:
+        if self.agent is None:
+            self.get_logger().warn('waiting for arm/robot_description (the joint box) before exploring',
+                                   throttle_duration_sec=10.0)
+            return
         waited = time.monotonic() - self.phase_since
         if self.agent.phase_ == PHASE_LEARNING and waited > self.learning_timeout:
             self.agent.explore_more(f'no collision map after {self.learning_timeout:.0f} s: exploring more')
@@ -320,6 +366,8 @@ class DpPlannerNode(Node):
         return msg
 
     def _publish_transitions(self) -> None:
+        if self.agent is None:
+            return
         transitions = self.agent.pop_transitions()
         for t in transitions:
             self.get_logger().info(f'-> {PHASE_NAMES[t.phase]}: {t.detail}')
@@ -330,7 +378,7 @@ class DpPlannerNode(Node):
     # --- acting once per frame --------------------------------------------------------------------------------
     def _try_act(self, timer: bool = False) -> None:
         stamp = self.latest_stamp
-        if stamp is None or stamp == self.acted_stamp or stamp not in self.joints:
+        if self.agent is None or stamp is None or stamp == self.acted_stamp or stamp not in self.joints:
             return
         waited = time.monotonic() - self.frame_wall.get(stamp, time.monotonic()) > self.embedding_timeout
         if stamp not in self.contacts:

@@ -13,7 +13,8 @@ from mm_msgs.srv import SetJointGoal
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, Header
+from mm_common.robot_description import planar_chain_urdf
+from std_msgs.msg import Float64MultiArray, Header, String
 
 from mm_planner.dp_planner_node import DpPlannerNode
 from mm_planner.value_iteration import JointGrid
@@ -21,11 +22,15 @@ from mm_planner.value_iteration import JointGrid
 QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 GRID = JointGrid((-3.2, -0.8), (0.0, 2.2), 8, 12)
+
+
+def urdf(box=((-3.2, -0.8), (0.0, 2.2))):
+    return planar_chain_urdf('test_arm', [(f'joint{i}', lo, hi, 0.1) for i, (lo, hi) in enumerate(box)], 4.0)
 P = ControllerStatus
 
 
 class Rig:
-    def __init__(self, **params):
+    def __init__(self, describe=True, **params):
         self.ros = RosHarness()
         try:
             defaults = dict(exploration_steps=0, wait_for_embedding=False)
@@ -43,11 +48,15 @@ class Rig:
             self.map = self.client.create_publisher(CollisionMap, 'arm/embedding/collision_map', LATCHED)
             self.goal = self.client.create_publisher(Float64MultiArray, 'arm/goal', LATCHED)
             self.set_goal = self.client.create_client(SetJointGoal, 'arm/set_goal')
+            self.description = self.client.create_publisher(String, 'arm/robot_description', LATCHED)
             pubs = [self.joints, self.contact, self.map, self.goal]
             assert self.ros.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs)
                                        and self.node.cmd_pub.get_subscription_count() > 0
                                        and self.node.request_pub.get_subscription_count() > 0, timeout=10)
             assert self.set_goal.wait_for_service(timeout_sec=10)
+            if describe:
+                self.description.publish(String(data=urdf()))
+                assert self.ros.spin_until(lambda: self.node.agent is not None, timeout=10)
         except BaseException:
             self.ros.close()
             raise
@@ -153,7 +162,7 @@ def test_malformed_inputs_are_rejected_and_the_node_keeps_working(rig):
 def test_parameters_start_up_only_and_cross_checks():
     rig = Rig()
     try:
-        for name, value in (('exploration_steps', 10), ('joint0_limits', [-3.0, -1.0]), ('grid_rows', 4),
+        for name, value in (('exploration_steps', 10), ('grid_rows', 4),
                             ('collision_reward', -50.0), ('exploration_seed', 3)):
             assert not rig.node.set_parameters([Parameter(name, value=value)])[0].successful, name
         assert not rig.node.set_parameters([Parameter('arrival_tolerance', value=0.2)])[0].successful   # > cells/2
@@ -161,5 +170,28 @@ def test_parameters_start_up_only_and_cross_checks():
         assert rig.node.agent.max_execution_steps == 10
     finally:
         rig.close()
-    with pytest.raises(ValueError):
-        Rig(joint0_limits=[-0.8, -3.2])
+
+
+def test_the_joint_box_comes_from_the_robot_description_and_a_bad_one_is_refused():
+    rig = Rig(describe=False, exploration_steps=0)
+    try:
+        rig.send_map(0)                       # latched map before the robot is known: kept, not lost
+        reply = rig.call_goal(GRID.centre((2, 2)))
+        assert not reply.accepted and 'robot_description' in reply.message
+        bad = ['', '<robot', '<!DOCTYPE robot [<!ENTITY a "b">]><robot/>', urdf(((-0.8, -3.2), (0.0, 2.2))),
+               planar_chain_urdf('three', [('a', 0, 1, 0.1), ('b', 0, 1, 0.1), ('c', 0, 1, 0.1)], 1.0)]
+        for i, text in enumerate(bad):
+            rig.description.publish(String(data=text))
+            assert rig.ros.spin_until(lambda: rejected_inputs(rig.node).get('arm/robot_description', 0) == i + 1)
+        assert rig.node.agent is None and not rig.commands
+        rig.description.publish(String(data=urdf()))
+        assert rig.ros.spin_until(lambda: rig.status and rig.status[-1].phase == P.PHASE_WAITING_FOR_GOAL)
+        assert np.allclose(rig.node.grid.limits, [(-3.2, -0.8), (0.0, 2.2)])
+        assert rig.node.agent.maps_received_ == 1            # the map that came first was used
+        n = rejected_inputs(rig.node).get('arm/robot_description', 0)
+        rig.description.publish(String(data=urdf(((-3.0, -1.0), (0.0, 2.2)))))
+        assert rig.ros.spin_until(lambda: rejected_inputs(rig.node).get('arm/robot_description', 0) == n + 1)
+        assert np.allclose(rig.node.grid.limits, [(-3.2, -0.8), (0.0, 2.2)])
+        assert rig.call_goal(GRID.centre((2, 2))).accepted
+    finally:
+        rig.close()

@@ -19,8 +19,11 @@ from typing import Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
+from mm_common.robot_description import planar_chain_urdf
 
 JOINT_NAMES = ('shoulder_roll', 'shoulder_pitch')
+# URDF lengths are metres; the simulated arm lives in the image plane, so 1 px is written as 1 mm.
+PX_TO_URDF = 1e-3
 
 
 def _random_texture(rng: np.random.Generator, height: int, width: int, n_blobs: Optional[int] = None,
@@ -147,6 +150,13 @@ class ArmModel:
         if not np.all(np.isfinite(q)):
             raise ValueError('joint values must be finite')
         return q
+
+    def robot_description(self, max_joint_speed: float) -> str:
+        """URDF of the arm (joint limits, link lengths, speed limit [rad/s]) for arm/robot_description."""
+        joints = [(name, lo, hi, length * PX_TO_URDF)
+                  for name, (lo, hi), length in zip(JOINT_NAMES, self.joint_limits, self.link_lengths)]
+        return planar_chain_urdf('mm_planar_arm', joints, max_joint_speed, unit_note='the arm moves in the camera '
+                                 'image plane: lengths are image pixels x 1e-3 (1 px -> 1 mm)')
 
     def clip_joints(self, joints: Sequence[float]) -> np.ndarray:
         """Validated joints clipped to the limits (a position controller saturates at the joint stops)."""

@@ -13,6 +13,9 @@ Publishes, per simulation step and in this order, all with the stamp of that ste
   `arm/ground_truth/state` (mm_msgs/ArmGroundTruth: object place, hand-object distance, contact of any part - upper
   link, forearm, hand - along the motion, the smallest distance and clearance along it, running contact counts since
   the last placement) and `arm/ground_truth/object_pose` (geometry_msgs/PoseStamped, image pixels, frame `camera`).
+Latched (TRANSIENT_LOCAL), at start and when `max_joint_speed` changes: `arm/robot_description` (std_msgs/String,
+a URDF of the two revolute joints with their limits and speed limit), where image_embedding and dp_planner read the
+joint box.
 Consumes `arm/joint_position_controller/commands` (std_msgs/Float64MultiArray, [shoulder_roll, shoulder_pitch]
 target angles [rad]): per step the arm moves straight toward the target, at most `max_joint_speed * dt` rad per joint,
 clipped to the joint limits (see mm_sim.arm_motion). Targets beyond a limit by more than `command_margin`, NaN/inf or
@@ -49,10 +52,10 @@ from mm_msgs.srv import PlaceObject
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock as WallClock, ClockType
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, String
 
 from mm_sim.arm_model import JOINT_NAMES, ArmModel
 from mm_sim.arm_motion import move_towards, sweep
@@ -61,6 +64,9 @@ from mm_sim.arm_motion import move_towards, sweep
 # absorbs a briefly slow subscriber (50 frames of 480 kB at most). Ground truth is reliable too: an evaluator must
 # see every frame's contacts (and the running counts cover a message lost anyway).
 LOOP_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+# The robot description is latched state (as robot_state_publisher's): a node that starts later still gets it.
+DESCRIPTION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
 OBJECT_MODES = ('fixed', 'every_n_frames', 'on_request')
 COMMAND_TOPIC = 'arm/joint_position_controller/commands'
 # A lockstep loop idle this long [ns of wall time] with nobody able to command it is reported.
@@ -138,6 +144,8 @@ class ArmSim(Node):
         self.object_pub = self.create_publisher(PoseStamped, 'arm/ground_truth/object_pose', LOOP_QOS)
         self.command_sub = self.create_subscription(Float64MultiArray, COMMAND_TOPIC, self._on_command, LOOP_QOS)
         self.create_service(PlaceObject, 'arm/place_object', self._on_place_object)
+        self.description_pub = self.create_publisher(String, 'arm/robot_description', DESCRIPTION_QOS)
+        self._publish_description()
         self._last_step: Optional[list] = None      # (publisher, message) pairs of the last step, for re-sending
         self._wall = WallClock(clock_type=ClockType.STEADY_TIME)
         self._last_sent_ns = 0
@@ -154,6 +162,10 @@ class ArmSim(Node):
             f'joints {self.joints.tolist()}')
 
     # --- scene --------------------------------------------------------------------------------------------------
+    def _publish_description(self) -> None:
+        """The arm as a URDF: the joint box the learner and planner read (their only source of joint limits)."""
+        self.description_pub.publish(String(data=self.model.robot_description(self.max_joint_speed)))
+
     def _build_model(self, seed: int, position) -> ArmModel:
         pos = list(position)
         if pos == [-1.0]:
@@ -208,7 +220,9 @@ class ArmSim(Node):
             model = self._build_model(seed, position) if rebuild else self.model
         except ValueError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
-        self.max_joint_speed = float(values.get('max_joint_speed', self.max_joint_speed))
+        if 'max_joint_speed' in values:
+            self.max_joint_speed = float(values['max_joint_speed'])
+            self._publish_description()
         self.command_margin = float(values.get('command_margin', self.command_margin))
         self.contact_resolution = float(values.get('contact_resolution', self.contact_resolution))
         self.object_mode = values.get('object_mode', self.object_mode)

@@ -25,11 +25,11 @@ import numpy as np
 
 from mm_bringup.arm_graph import ArmGraphDriver, start_arm_graph
 from mm_bringup.process_graph import ProcessGraph
+from mm_planner.arm_agent import EXPLORATION_STEPS
 
 NAME = 'arm_reach'
 SCENE_SEED = 7                    # textures and background; the exploration's object places follow it
 PLACEMENT_SEED0 = 70_000          # held-out placements: seeds 70001, 70002, ...
-EXPLORATION_STEPS = 1000          # frames explored before the fit (chosen by mm_bringup.tune_arm_reach)
 
 
 def run(output_dir: Path, quick: bool, placements: Optional[int] = None, exploration_steps: Optional[int] = None,
