@@ -2,7 +2,8 @@
 the nodes (arm_sim + dp_planner in one process, own Context) on one seed gives the same commands, frame by frame:
 exploration, the wait for learning, the goal, the map request of the current frame, and the planned reach around
 the object. The test plays image_embedding's part with one fixed map (the simulator's ground-truth cell map), the
-same for both drivers, so only the drivers differ."""
+same for both drivers, with the moves between cell centres that touch the object (blocked_moves, in the message's
+layout for the node), so only the drivers differ."""
 import numpy as np
 from mm_common.ros_harness import RosHarness
 from mm_msgs.msg import CollisionMap, ControllerStatus
@@ -14,6 +15,7 @@ from std_msgs.msg import Float64MultiArray, Header
 
 from mm_bringup.arm_offline import drive
 from mm_bringup.arm_graph import free_path_exists, truth_cell_map
+from mm_manifold.arm_learning import move_hits
 from mm_planner.arm_agent import ArmAgent
 from mm_planner.dp_planner_node import DpPlannerNode
 from mm_sim.arm_model import ArmModel
@@ -28,20 +30,29 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability
 P = ControllerStatus
 
 
+def truth_moves(scene, resolution=4):
+    """(4, 8, 12): the moves between cell centres on which some arm part touches the object."""
+    lo, hi = scene.joint_limits[:, 0], scene.joint_limits[:, 1]
+    axes = [np.linspace(lo[k], hi[k], n * resolution + 1) for k, n in enumerate((8, 12))]
+    lattice = np.stack(np.meshgrid(*axes, indexing='ij'), -1)
+    hit = scene.part_clearances(lattice.reshape(-1, 2)).min(axis=1).reshape(lattice.shape[:2]) < 0.0
+    return move_hits(hit, (8, 12), resolution)
+
+
 def offline(goal=None):
     scene = ArmModel(random_state=SEED)
     agent = ArmAgent(scene.joint_limits, exploration_steps=EXPLORATION, exploration_seed=SEED)
-    blocked = truth_cell_map(scene, scene.joint_limits, (8, 12))
-    learned = drive(agent, scene, JointMotion(scene), START, learn=lambda: (blocked, None))
+    blocked, moves = truth_cell_map(scene, scene.joint_limits, (8, 12)), truth_moves(scene)
+    learned = drive(agent, scene, JointMotion(scene), START, learn=lambda: (blocked, None, moves))
     if goal is None:
-        return learned, scene, blocked
+        return learned, scene, blocked, moves
     reach = drive(agent, scene, JointMotion(scene), learned['joints'], stamp=learned['stamp'],
-                  contact=learned['contact'], goal=goal, map_for_frame=lambda stamp, q: (blocked, None))
+                  contact=learned['contact'], goal=goal, map_for_frame=lambda stamp, q: (blocked, None, moves))
     return learned, reach
 
 
 def test_node_and_offline_runner_give_the_same_commands():
-    learned, scene, blocked = offline()
+    learned, scene, blocked, moves = offline()
     assert learned['phase_name'] == 'WAITING_FOR_GOAL' and len(learned['commands']) == EXPLORATION
     lim = scene.joint_limits
     step = (lim[:, 1] - lim[:, 0]) / np.array([8, 12])
@@ -72,7 +83,8 @@ def test_node_and_offline_runner_give_the_same_commands():
 
         def send_map(stamp):
             m = CollisionMap(rows=8, cols=12, joint0_limits=list(lim[0]), joint1_limits=list(lim[1]),
-                             collision=[bool(v) for v in blocked.ravel()])
+                             collision=[bool(v) for v in blocked.ravel()],
+                             blocked_moves=[bool(v) for v in moves.transpose(1, 2, 0).ravel()])
             m.header.stamp = stamp
             map_pub.publish(m)
 

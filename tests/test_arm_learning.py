@@ -8,8 +8,8 @@ import pytest
 from scipy.ndimage import distance_transform_cdt
 
 from mm_bringup.arm_evaluation import moving_object_exploration, render_keypoints, sample_exploration_joints
-from mm_manifold.arm_learning import (EXTERNAL, SELF, STATIC, ArmStateLearner, ModelFileError, cell_map, cross_max,
-                                      joint_features, label_roles)
+from mm_manifold.arm_learning import (EXTERNAL, GRID_MOVES, SELF, STATIC, ArmStateLearner, ModelFileError, cell_map,
+                                      cross_max, joint_features, label_roles, move_hits)
 from mm_manifold.embedding import ContactQuadric, ContactSphere
 from mm_manifold.keypoints import KeypointExtractor
 from mm_sim.arm_model import ArmModel
@@ -301,3 +301,15 @@ def test_keypoint_distance_outlines_the_robot_with_precisely_placed_labels_only(
     other._fit_object_geometry(corrupted.reshape(len(raw), -1), joints, contact)
     assert label not in np.unique(other.rigid_pairs_)
     assert label in used and len(np.unique(other.rigid_pairs_)) >= len(used) - 1
+
+
+def test_move_hits_mark_the_moves_between_centres_that_cross_a_hit():
+    # 2 x 3 grid, resolution 4: a hit on the lattice point halfway between the centres of cells (0, 0) and (0, 1)
+    hit = np.zeros((2 * 4 + 1, 3 * 4 + 1), bool)
+    hit[2, 4] = True
+    moves = move_hits(hit, (2, 3), 4)
+    right, left = GRID_MOVES.index((0, 1)), GRID_MOVES.index((0, -1))
+    assert moves[right, 0, 0] and moves[left, 0, 1]
+    assert not moves[right, 0, 1] and not moves[right, 1, 0]
+    assert moves[GRID_MOVES.index((-1, 0)), 0, :].all() and moves[right, :, 2].all()      # off the grid
+    assert moves.sum() == 2 + 3 + 3 + 2 + 2

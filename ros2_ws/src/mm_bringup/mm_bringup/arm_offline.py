@@ -5,7 +5,8 @@ topics. The node and this runner share the agent, so offline experiments measure
 `drive(agent, scene, motion, joints, ...)` feeds the agent one observation per frame (stamp, joints, the hand's
 touch reading along the motion into the frame), forwards commands to the motion model, answers the agent's map
 requests with `map_for_frame(stamp, joints)` (e.g. a learner's prediction from the rendered frame), calls `learn()`
-when the agent waits for its first map, and stops when the agent sends nothing and has nothing left to wait for.
+when the agent waits for its first map (both return a map as (collision, closeness or None, blocked_moves or None),
+what a CollisionMap carries), and stops when the agent sends nothing and has nothing left to wait for.
 """
 from __future__ import annotations
 
@@ -15,13 +16,13 @@ import numpy as np
 from mm_planner.arm_agent import (PHASE_EXECUTING, PHASE_FAILED, PHASE_GOAL_REACHED, PHASE_LEARNING,
                                   PHASE_WAITING_FOR_GOAL, ArmAgent, ArmObservation)
 
-MapPair = Tuple[np.ndarray, Optional[np.ndarray]]
+MapParts = Tuple[np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]      # collision, closeness, blocked_moves
 
 
 def drive(agent: ArmAgent, scene, motion, joints: Sequence[float], stamp: int = 0, dt_ns: int = 100_000_000,
           contact: bool = False, goal: Optional[Sequence[float]] = None, goal_stamp: Optional[int] = None,
-          learn: Optional[Callable[[], MapPair]] = None,
-          map_for_frame: Optional[Callable[[int, np.ndarray], MapPair]] = None, max_frames: int = 5000,
+          learn: Optional[Callable[[], MapParts]] = None,
+          map_for_frame: Optional[Callable[[int, np.ndarray], MapParts]] = None, max_frames: int = 5000,
           on_frame: Optional[Callable[[int, np.ndarray, np.ndarray], None]] = None) -> Dict[str, object]:
     """Run until the agent stops commanding (module docstring). `goal` is set once the agent waits for one
     (WAITING_FOR_GOAL), as a user does; call again with the returned joints, stamp and contact to continue. `on_frame(stamp, q_before, q_after)` is
@@ -48,12 +49,12 @@ def drive(agent: ArmAgent, scene, motion, joints: Sequence[float], stamp: int = 
             if not goal_sent and agent.phase_ == PHASE_WAITING_FOR_GOAL:
                 continue
             if agent.phase_ == PHASE_LEARNING and learn is not None:
-                collision, closeness = learn()
-                agent.set_map(collision, closeness, stamp)
+                collision, closeness, moves = learn()
+                agent.set_map(collision, closeness, stamp, moves)
             elif request is not None and map_for_frame is not None:
                 requests.append(request)
-                collision, closeness = map_for_frame(request, q)
-                agent.set_map(collision, closeness, request)
+                collision, closeness, moves = map_for_frame(request, q)
+                agent.set_map(collision, closeness, request, moves)
             else:
                 break
         if command is None:

@@ -37,8 +37,12 @@ the `recent_frames` frames before it.
 the keypoint vector the camera would see there - the robot's labels where the joint regression puts them, the
 others as seen in the current frame (hidden ones from the recent frames) - embeds it out of sample and applies the
 contact region. A cell is marked as collision when any lattice point at its centre or on the moves to its
-neighbours' centres - its half of them - is predicted in contact (closeness >= `map_threshold`; the union over the cross makes a low
-threshold block far too much). The robot only learns the contact its touch sensor reports: with a touch sensor on
+neighbours' centres - its half of them - is predicted in contact (closeness >= `map_threshold`; the union over the
+cross makes a low threshold block far too much). The map also says which moves between cell centres touch a
+predicted contact (`blocked_moves`): a cell whose move to one side touches the object can still be crossed the other
+way, which the per-cell map forbids and which opens the narrow passages next to the object; on the keypoint-distance
+route such a move must also keep `move_clearance` px of predicted clearance, because a single move has none of the
+half-cell slack the per-cell cross gives. The robot only learns the contact its touch sensor reports: with a touch sensor on
 the hand alone (the paper's label) the map cannot know where the links would hit the object; arm_sim's whole-arm
 contact sense (what a real arm feels through its joint torques) is the label image_embedding uses by default.
 
@@ -150,6 +154,28 @@ def cross_max(hit: np.ndarray, value: np.ndarray, shape, resolution: int):
             out_hit[r, c] = cross_hit.any()
             out_val[r, c] = cross_val.max()
     return out_hit, out_val
+
+
+# Moves between adjacent cells, in the order of mm_planner.value_iteration.MOVES (CollisionMap.blocked_moves).
+GRID_MOVES = ((-1, 0), (1, 0), (0, -1), (0, 1))
+
+
+def move_hits(hit: np.ndarray, shape, resolution: int) -> np.ndarray:
+    """(4, rows, cols) bool: whether any lattice point on the straight move from each cell's centre to its
+    neighbour's centre (GRID_MOVES order; both centres included) is a `hit`; moves off the grid count as hit.
+    Lattice as in cross_max."""
+    rows, cols = shape
+    s, h = int(resolution), int(resolution) // 2
+    if hit.shape != (rows * s + 1, cols * s + 1):
+        raise ValueError('lattice does not match the grid shape and resolution')
+    out = np.ones((len(GRID_MOVES), rows, cols), bool)
+    for k, (dr, dc) in enumerate(GRID_MOVES):
+        for r in range(max(0, -dr), rows - max(0, dr)):
+            for c in range(max(0, -dc), cols - max(0, dc)):
+                i, j = r * s + h, c * s + h
+                steps = np.arange(s + 1)
+                out[k, r, c] = hit[i + dr * steps, j + dc * steps].any()
+    return out
 
 
 def joint_features(joints: np.ndarray) -> np.ndarray:
@@ -283,7 +309,8 @@ class ArmStateLearner:
     roles), min_motion [px] (below: a static label), recent_frames (how many preceding frames may stand in for a
     hidden external label), map_resolution (lattice points per cell side in predict_collision_map; even),
     map_threshold (closeness at or above which predict_collision_map counts a lattice point as contact; chosen by
-    mm_bringup.tune_arm).
+    mm_bringup.tune_arm), move_clearance [px] (keypoint_distance: the predicted clearance a move between cell centres
+    must keep to count as free in blocked_moves; chosen by mm_bringup.tune_arm_reach).
     Learned attributes: vectorizer_, label_roles_, joint_coef_ (joint regression of every label), label_r2_,
     label_motion_, label_mean_ (mean training position of every label), lle_, pca_, region_ and
     pca_region_ (ContactSphere or ContactQuadric), selection_ and pca_selection_ (the cross-validated choice: model, C,
@@ -299,7 +326,8 @@ class ArmStateLearner:
                  representation: str = 'relative', self_r2: float = 0.9, external_r2: float = 0.3,
                  min_motion: float = 10.0, recent_frames: int = 5, map_resolution: int = 4,
                  map_threshold: float = 0.5, map_method: str = 'embedding', rigid_tolerance: float = 2.0,
-                 object_tolerance: float = 3.0, margin_quantile: float = 0.01, unplaced_object: str = 'embedding'):
+                 object_tolerance: float = 3.0, margin_quantile: float = 0.01, unplaced_object: str = 'embedding',
+                 move_clearance: float = 3.0):
         lim = np.asarray(joint_limits, dtype=float)
         if lim.shape != (2, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
             raise ValueError('joint_limits must be ((lo0, hi0), (lo1, hi1)) with finite lo < hi')
@@ -326,6 +354,8 @@ class ArmStateLearner:
                              'are required')
         if unplaced_object not in UNPLACED_POLICIES:
             raise ValueError(f'unplaced_object must be one of {UNPLACED_POLICIES}')
+        if not 0.0 <= move_clearance < 100.0:
+            raise ValueError('move_clearance must be in [0, 100) px')
         unknown = set(vectorizer_params or {}) - set(_VECTORIZER_PARAMS)
         if unknown:
             raise ValueError(f'unknown vectorizer parameters: {sorted(unknown)}')
@@ -355,6 +385,7 @@ class ArmStateLearner:
         self.object_tolerance = float(object_tolerance)
         self.margin_quantile = float(margin_quantile)
         self.unplaced_object = unplaced_object
+        self.move_clearance = float(move_clearance)
 
     def get_params(self) -> Dict[str, object]:
         """The constructor's parameters (JSON-able), as saved with the model."""
@@ -366,7 +397,8 @@ class ArmStateLearner:
                     min_motion=self.min_motion, recent_frames=self.recent_frames,
                     map_resolution=self.map_resolution, map_threshold=self.map_threshold, map_method=self.map_method,
                     rigid_tolerance=self.rigid_tolerance, object_tolerance=self.object_tolerance,
-                    margin_quantile=self.margin_quantile, unplaced_object=self.unplaced_object)
+                    margin_quantile=self.margin_quantile, unplaced_object=self.unplaced_object,
+                    move_clearance=self.move_clearance)
 
     # --- fitting ------------------------------------------------------------------------------------------
     def fit(self, keypoints: Sequence[FrameKeypoints], joints, contact, stamps=None) -> 'ArmStateLearner':
@@ -664,7 +696,9 @@ class ArmStateLearner:
                               method: Optional[str] = None) -> Dict[str, object]:
         """Collision map for the object placement seen in `frame` before moving (module docstring): dict(
         collision (rows, cols) bool, closeness (rows, cols) float (largest over the cell's cross of lattice
-        points), lattice_joints (R, C, 2), lattice_closeness (R, C), external_labels (learned count),
+        points), blocked_moves (4, rows, cols) bool (move_hits: the move between two cell centres touches a
+        predicted contact or, on the keypoint-distance route, keeps less than `move_clearance` px of predicted
+        clearance), lattice_joints (R, C, 2), lattice_closeness (R, C), external_labels (learned count),
         external_seen (of them known in frame + recent), objects_placed, method (route taken), new_frames
         (1 + len(recent)))."""
         lattice = self.map_lattice()
@@ -672,7 +706,11 @@ class ArmStateLearner:
         close = pred['closeness'].reshape(lattice.shape[:2])
         hit = pred['collision'].reshape(lattice.shape[:2])
         collision, closeness = cross_max(hit, close, self.grid_shape, self.map_resolution)
-        return dict(collision=collision, closeness=closeness, lattice_joints=lattice, lattice_closeness=close,
+        move_hit = hit if pred['clearance'] is None else (
+            pred['clearance'].reshape(hit.shape) < self.move_clearance) | hit
+        return dict(collision=collision, closeness=closeness,
+                    blocked_moves=move_hits(move_hit, self.grid_shape, self.map_resolution), lattice_joints=lattice,
+                    lattice_closeness=close,
                     external_labels=int(len(self.external_labels_)), external_seen=pred['external_seen'],
                     objects_placed=pred['objects_placed'], method=pred['method'], new_frames=1 + len(recent))
 

@@ -173,6 +173,11 @@ class ImageEmbeddingNode(Node):
                                     "segment's contact distance (keypoint_distance; chosen through the graph by "
                                     "mm_bringup.tune_arm_reach)",
                                     min_value=0.0, max_value=0.5, read_only=True),
+            move_clearance=declare(self, 'move_clearance', 3.0, 'px of predicted clearance a move between cell '
+                                   'centres must keep to count as free in the map\'s blocked_moves (keypoint_distance; '
+                                   'chosen through the graph by mm_bringup.tune_arm_reach: 0 px let the hand graze '
+                                   'the object)', min_value=0.0,
+                                   max_value=99.0, read_only=True),
             unplaced_object=declare(self, 'unplaced_object', 'block', "keypoint_distance map of a frame that does not "
                                     "show the object where it is: 'block' every cell (dp_planner refuses the goal; "
                                     "on scenes 17-20 the embedding fallback caused every contact) or 'embedding' "
@@ -408,7 +413,9 @@ class ImageEmbeddingNode(Node):
             pred = self.model.predict_collision_map(self.recent[stamp], recent)
             collision = np.asarray(pred['collision'], dtype=bool)
             closeness = np.asarray(pred['closeness'], dtype=float)
-            if collision.shape != self.model.grid_shape or closeness.shape != collision.shape:
+            moves = np.asarray(pred['blocked_moves'], dtype=bool)
+            if (collision.shape != self.model.grid_shape or closeness.shape != collision.shape
+                    or moves.shape != (4,) + collision.shape):
                 raise ValueError(f'prediction of shape {collision.shape} for a {self.model.grid_shape} grid')
         except Exception as exc:     # a failed prediction must not end the node; the planner times out and says so
             self.get_logger().error(f'collision map of frame {stamp * 1e-9:.3f} s failed: {exc}')
@@ -421,11 +428,13 @@ class ImageEmbeddingNode(Node):
         m.joint1_limits = [float(v) for v in self.model.joint_limits[1]]
         m.collision = [bool(v) for v in collision.ravel()]
         m.closeness = [float(v) for v in np.where(np.isnan(closeness), -np.inf, closeness).ravel()]
+        m.blocked_moves = [bool(v) for v in moves.transpose(1, 2, 0).ravel()]      # (row * cols + col) * 4 + move
         self.map_pub.publish(m)
         self.maps_published += 1
         self.get_logger().info(f'collision map {self.maps_published} of frame {stamp * 1e-9:.3f} s from '
                                f'{1 + len(recent)} frame(s) of the current scene: {int(collision.sum())} '
-                               f"collision cells ({pred['method']}, {pred['objects_placed']} object(s) placed)")
+                               f"collision cells, {int(moves.sum())} blocked moves ({pred['method']}, "
+                               f"{pred['objects_placed']} object(s) placed)")
 
     # --- learning ---------------------------------------------------------------------------------------------
     @property

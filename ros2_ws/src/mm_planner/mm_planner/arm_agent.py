@@ -2,7 +2,8 @@
 the joint grid -> execute -> report. The dp_planner node and the offline runners drive this same class.
 
 Drivers call, per simulator frame, `step(ArmObservation) -> joint target or None` (None: send nothing; in lockstep
-the simulator then waits), and forward events: `set_goal(joints, stamp)`, `set_map(collision, closeness, stamp)`
+the simulator then waits), and forward events: `set_goal(joints, stamp)`, `set_map(collision, closeness, stamp,
+blocked_moves)`
 (a CollisionMap built from the frame with that stamp), `explore_more(reason)` (the driver's learning timeout).
 They publish what `pop_transitions()` returns (each phase change, with its reason) and, after each command,
 `status()`; they send a map request for `take_map_request()` (a frame stamp) when it is not None.
@@ -17,10 +18,11 @@ sends no command until one arrives; a newer frame arriving meanwhile (e.g. the f
 renews the request. Once moving, the agent's own motion does not move the object: later maps (refits) replan at once.
 
 Planning is value iteration on the rows x cols joint grid (mm_planner.value_iteration.DPPlanner) with the paper's
-rewards (0 at the goal cell, -100 for entering a predicted collision cell, -1 per step) plus the clearance reward
+rewards (0 at the goal cell, -100 for entering a predicted collision cell - or, when the map says which moves
+collide, for a blocked move - and -1 per step) plus the clearance reward
 (`clearance_reward`, default -5: free cells near the learned contact region cost up to that much more, see
 value_iteration; 0 gives the paper's rewards only). FAILED names the reason: no collision-free path on the map, the
-next cell predicted as collision, or `max_execution_steps` passed. With `through_predicted_collision` the agent
+next move predicted to collide, or `max_execution_steps` passed. With `through_predicted_collision` the agent
 instead follows the DP policy as the paper's rewards alone would (collision cells penalised, not forbidden: the path
 with the fewest predicted collisions) when no collision-free path exists; off by default. Execution commands the
 centre of the next cell until the arm is within `arrival_tolerance` of it.
@@ -133,10 +135,12 @@ class ArmAgent:
             self._await_map(f'new goal {np.round(self.goal_, 3).tolist()} (cell {self.goal_cell_})')
         return ''
 
-    def set_map(self, collision: np.ndarray, closeness: Optional[np.ndarray], stamp: int) -> bool:
-        """A collision map (rows, cols) bool and closeness (or None) built from the frame `stamp`. ValueError if it
-        does not fit the grid. Returns True if the map changed the plan inputs."""
-        changed = self.planner.update_collision(collision, closeness)
+    def set_map(self, collision: np.ndarray, closeness: Optional[np.ndarray], stamp: int,
+                blocked_moves: Optional[np.ndarray] = None) -> bool:
+        """A collision map (rows, cols) bool, closeness (or None) and blocked moves ((4, rows, cols) in
+        value_iteration.MOVES order, or None: plan on the per-cell map) built from the frame `stamp`. ValueError if
+        it does not fit the grid. Returns True if the map changed the plan inputs."""
+        changed = self.planner.update_collision(collision, closeness, blocked_moves)
         self.map_stamp_ = int(stamp)
         self.maps_received_ += 1
         if self.phase_ == PHASE_LEARNING:
@@ -231,8 +235,8 @@ class ArmAgent:
             if nxt is None:
                 self._set_phase(PHASE_FAILED, f'no move from cell {cell}')
                 return None
-            if self.planner.collision_[nxt] and not self.through_predicted_collision:
-                self._set_phase(PHASE_FAILED, f'next cell {nxt} is predicted as collision')
+            if self.planner.move_collides(cell, nxt) and not self.through_predicted_collision:
+                self._set_phase(PHASE_FAILED, f'the move from cell {cell} to cell {nxt} is predicted to collide')
                 return None
             self.target_ = self.grid.centre(nxt)
         return self.target_
@@ -261,12 +265,14 @@ class ArmAgent:
         if path is None and self.through_predicted_collision:
             path = self.planner.plan(start, allow_collision=True)
             if path is not None:
-                crossed = sum(bool(self.planner.collision_[c]) for c in path[1:])
-                crossing = f', through {crossed} predicted collision cells'
+                crossed = sum(self.planner.move_collides(a, b) for a, b in zip(path, path[1:]))
+                crossing = f', with {crossed} moves predicted to collide'
         if path is None:
-            blocked = int(self.planner.collision_.sum())
+            blocked = f'{int(self.planner.collision_.sum())} collision cells'
+            if self.planner.blocked_moves_ is not None:
+                blocked += f', {int(self.planner.blocked_moves_.sum())} blocked moves'
             self._set_phase(PHASE_FAILED, f'no collision-free path from cell {start} to cell {self.goal_cell_} on '
-                                          f'the map of frame {self.map_stamp_} ({blocked} collision cells; {why})')
+                                          f'the map of frame {self.map_stamp_} ({blocked}; {why})')
             return False
         self._set_phase(PHASE_EXECUTING, f'{why}: {len(path) - 1} moves from cell {start} to cell '
                                          f'{self.goal_cell_} on the map of frame {self.map_stamp_}{crossing}')

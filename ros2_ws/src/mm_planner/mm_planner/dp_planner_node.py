@@ -111,6 +111,10 @@ class DpPlannerNode(Node):
                                                 'collision-free path exists on the map, follow the DP policy through '
                                                 'predicted collision cells (paper rewards) instead of FAILING',
                                                 read_only=True))
+        self.use_blocked_moves = declare(self, 'use_blocked_moves', True, "Plan on the map's blocked moves when it "
+                                         "has them (a cell is crossed along its free moves); false: on the per-cell "
+                                         "map only, as the paper (chosen by mm_bringup.tune_arm_reach)",
+                                         read_only=True)
         self.wait_for_embedding = declare(self, 'wait_for_embedding', True,
                                           'Pace commands on arm/embedding/state of the same frame')
         self.embedding_timeout = declare(self, 'embedding_timeout', 5.0, 'Wall seconds to wait for an embedding '
@@ -276,6 +280,8 @@ class DpPlannerNode(Node):
             return f'{len(msg.closeness)} closeness values for {len(msg.collision)} cells'
         if any(math.isnan(v) or v == math.inf for v in msg.closeness):
             return 'closeness values must be finite or -inf'
+        if len(msg.blocked_moves) not in (0, 4 * len(msg.collision)):
+            return f'{len(msg.blocked_moves)} blocked_moves for {len(msg.collision)} cells (need 4 per cell or none)'
         limits = [list(msg.joint0_limits), list(msg.joint1_limits)]
         if [len(v) for v in limits] != [2, 2] or not all(math.isfinite(v) for pair in limits for v in pair):
             return f'joint limits must be two finite [min, max] pairs, got {limits}'
@@ -296,10 +302,13 @@ class DpPlannerNode(Node):
             return
         closeness = np.array(msg.closeness, float).reshape(self.grid.shape) if len(msg.closeness) else None
         collision = np.array(msg.collision, bool).reshape(self.grid.shape)
+        moves = (np.array(msg.blocked_moves, bool).reshape(*self.grid.shape, 4).transpose(2, 0, 1)
+                 if len(msg.blocked_moves) and self.use_blocked_moves else None)   # (row*cols + col)*4 + move
         stamp = stamp_ns(msg.header.stamp)
-        changed = self.agent.set_map(collision, closeness, stamp)
+        changed = self.agent.set_map(collision, closeness, stamp, moves)
+        blocked = '' if moves is None else f', {int(moves.sum())} blocked moves'
         self.get_logger().info(f'collision map of frame {stamp * 1e-9:.3f} s: {int(collision.sum())} collision '
-                               f'cells{" (changed)" if changed else ""}')
+                               f'cells{blocked}{" (changed)" if changed else ""}')
         self._publish_transitions()
         self._try_act()
 

@@ -148,5 +148,5 @@ def test_through_predicted_collision_follows_the_fewest_collision_path_when_wall
     agent.set_map(blocked, None, agent.take_map_request())
     visited, _ = run_ideal(agent, q, 1)
     assert agent.phase_ == A.PHASE_GOAL_REACHED, agent.detail_
-    assert 'through 1 predicted collision cells' in agent.pop_transitions()[-2].detail
+    assert 'with 1 moves predicted to collide' in agent.pop_transitions()[-2].detail
     assert sum(blocked[grid.cell_of(v)] for v in visited) >= 1

@@ -137,10 +137,34 @@ def test_plans_before_moving_on_a_map_of_the_current_frame_and_names_the_goal(ri
     assert (failed.goal_stamp.sec, failed.goal_stamp.nanosec) not in {(0, 0), (sec_s, nsec)}
 
 
+def test_a_map_with_blocked_moves_is_planned_on_its_moves(rig):
+    # every cell is on the per-cell map, but the moves along row 4 are free: the node crosses along them
+    moves = np.zeros((8, 12, 4), bool)                     # the message's layout: (row * cols + col) * 4 + move
+    moves[:, :, :2] = True                                 # no move up or down anywhere
+    rig.send_map(0, np.ones((8, 12), bool), blocked_moves=[bool(v) for v in moves.ravel()])
+    assert rig.ros.spin_until(lambda: rig.status and rig.status[-1].phase == P.PHASE_WAITING_FOR_GOAL)
+    q = GRID.centre((4, 1))
+    rig.frame(1, q)
+    assert rig.call_goal(GRID.centre((4, 4))).accepted
+    assert rig.ros.spin_until(lambda: rig.requests and rig.requests[-1].stamp.sec == 1)
+    rig.send_map(1, np.ones((8, 12), bool), blocked_moves=[bool(v) for v in moves.ravel()])
+    sec = 1
+    while rig.status[-1].phase not in (P.PHASE_GOAL_REACHED, P.PHASE_FAILED) and sec < 30:
+        n = len(rig.commands)
+        assert rig.ros.spin_until(lambda: len(rig.commands) > n or rig.status[-1].phase in (
+            P.PHASE_GOAL_REACHED, P.PHASE_FAILED))
+        if len(rig.commands) > n:
+            q = np.array(rig.commands[-1].data)
+            assert GRID.cell_of(q)[0] == 4                 # never up or down
+            sec += 1
+            rig.frame(sec, q)
+    assert rig.status[-1].phase == P.PHASE_GOAL_REACHED, rig.status[-1].detail
+
+
 def test_malformed_inputs_are_rejected_and_the_node_keeps_working(rig):
     bad_maps = [dict(joint0_limits=[-3.2]), dict(rows=3), dict(collision=[True] * 5),
                 dict(closeness=[math.nan] * 96), dict(closeness=[0.0] * 7), dict(joint1_limits=[0.0, math.inf]),
-                dict(joint0_limits=[-3.0, -0.8])]
+                dict(joint0_limits=[-3.0, -0.8]), dict(blocked_moves=[False] * 95)]
     for i, bad in enumerate(bad_maps):
         rig.send_map(0, **bad)
         assert rig.ros.spin_until(lambda: rejected_inputs(rig.node).get('arm/embedding/collision_map', 0) == i + 1)

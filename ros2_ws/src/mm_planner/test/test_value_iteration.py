@@ -137,3 +137,57 @@ def test_clearance_reward_never_trades_a_collision_cell_for_clearance():
     assert path is not None and len(path) - 1 == 11 + 2 + 11
     assert plan_path(values, (0, 0), (2, 0), collision=collision, free_reward=free_reward) == path
     np.testing.assert_allclose(values[0, 0], -6.0 * 23)
+
+
+def _block(moves, a, b):
+    """Block the move from cell a to the adjacent cell b and back."""
+    for (r, c), (nr, nc) in ((a, b), (b, a)):
+        k = int(np.flatnonzero((MOVES == (nr - r, nc - c)).all(axis=1))[0])
+        moves[k, r, c] = True
+
+
+def test_blocked_moves_replace_the_per_cell_map_and_the_goal_move_counts_too():
+    # A corridor whose every cell is on the per-cell map (some move out of each touches the object) is still
+    # crossed along its free moves; a blocked move is avoided by a detour, and a goal whose every way in is blocked
+    # has no collision-free path.
+    grid = JointGrid((0.0, 1.0), (0.0, 1.0), rows=2, cols=4)
+    planner = DPPlanner(grid)
+    planner.set_goal((0, 3))
+    cells = np.ones((2, 4), bool)
+    moves = np.zeros((4, 2, 4), bool)
+    assert planner.update_collision(cells, None, moves) is True
+    assert planner.plan((0, 0), allow_collision=False) == [(0, 0), (0, 1), (0, 2), (0, 3)]
+    _block(moves, (0, 1), (0, 2))
+    assert planner.update_collision(cells, None, moves) is True
+    assert planner.move_collides((0, 1), (0, 2)) and planner.move_collides((0, 2), (0, 1))
+    assert not planner.move_collides((0, 1), (1, 1))
+    path = planner.plan((0, 0), allow_collision=False)
+    assert path == [(0, 0), (0, 1), (1, 1), (1, 2), (0, 2), (0, 3)] or path == [(0, 0), (1, 0), (1, 1), (1, 2),
+                                                                                (0, 2), (0, 3)]
+    assert all(not planner.move_collides(a, b) for a, b in zip(path, path[1:]))
+    _block(moves, (0, 2), (0, 3))
+    _block(moves, (1, 3), (0, 3))
+    planner.update_collision(cells, None, moves)
+    assert planner.plan((0, 0), allow_collision=False) is None
+    path = planner.plan((0, 0), allow_collision=True)
+    assert path[-1] == (0, 3) and sum(planner.move_collides(a, b) for a, b in zip(path, path[1:])) == 1
+    # the same map without the moves: the per-cell map, every cell blocked
+    assert planner.update_collision(cells) is True and planner.plan((0, 0), allow_collision=False) is None
+    with pytest.raises(ValueError):
+        planner.update_collision(cells, None, np.zeros((4, 3, 4), bool))
+    with pytest.raises(ValueError):
+        planner.move_collides((0, 0), (1, 1))
+
+
+def test_blocked_moves_keep_the_lowered_collision_reward_against_clearance_costs():
+    # Every free move costs -1 - 5; the only collision-free way round is long, yet it beats one blocked move.
+    collision = np.zeros((3, 12), bool)
+    moves = np.zeros((4, 3, 12), bool)
+    for c in range(11):
+        _block(moves, (0, c), (1, c))
+    free_reward = np.full((3, 12), -5.0)
+    values, policy = value_iteration(collision, goal=(1, 0), free_reward=free_reward, blocked_moves=moves)
+    path = plan_path(values, (0, 0), (1, 0), collision=collision, policy=policy, allow_collision=False,
+                     blocked_moves=moves)
+    assert path is not None and len(path) - 1 == 11 + 1 + 11
+    assert plan_path(values, (0, 0), (1, 0), collision=collision, free_reward=free_reward, blocked_moves=moves) == path
