@@ -1,7 +1,7 @@
 """Where the wheeled loop's time goes: one node of the loop (sensor_manifold or switching_controller) runs in this
 process while the other two run as processes; its rate, its CPU per step and (with --profile) a cProfile table.
 
-    ./mm python -m mm_bringup.bench.profile_node manifold --steps 1500 [--executor events] [--profile]
+    ./mm python -m mm_bringup.bench.profile_node manifold --steps 1500 [--executor single] [--profile]
 
 Not a `make bench` part (no JSON): a tool for deciding what to make faster.
 """
@@ -25,8 +25,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('node', choices=('manifold', 'controller'))
     parser.add_argument('--steps', type=int, default=1500)
-    parser.add_argument('--executor', choices=('single', 'events'), default='single',
-                        help="this node's executor: SingleThreadedExecutor or rclpy.experimental.EventsExecutor")
+    parser.add_argument('--executor', choices=('single', 'events'), default='events',
+                        help="this node's executor: rclpy.experimental.EventsExecutor (what run_node uses) or "
+                             "SingleThreadedExecutor (for comparison)")
     parser.add_argument('--profile', action='store_true', help='print the cProfile table (inflates the CPU figure)')
     args = parser.parse_args(argv)
     sim_time = [Parameter('use_sim_time', value=True)]
