@@ -148,11 +148,15 @@ def learn(robot: WheeledRobot, exploration_steps: int, dt: float, random_state: 
     """The graph's exploration and learning in process: the WallAgent explores until it asks for a model, the
     learner fits on every sample so far and the model reaches the agent through its message; a model that is not
     ready sends the agent exploring again (exploration_steps // 4 more) and the learner refits, as sensor_manifold
-    does, until the agent waits for a goal, gives up, or `max_samples` (default 4 x exploration_steps) were
-    explored. `model_params` (SensorManifoldModel) and `explorer_params` (RandomExplorer) are hyperparameters under
-    test (mm_bringup.tune_wall); a fit that fails (too little data) ends the loop without a model."""
+    does, until the agent waits for a goal or gives up at its cap of `max_samples` explored steps (default 4 x
+    exploration_steps, the node's default). `model_params` (SensorManifoldModel) and `explorer_params`
+    (RandomExplorer) are hyperparameters under test (mm_bringup.tune_wall); a fit that fails (too little data) ends
+    the loop without a model."""
     max_samples = max_samples or 4 * exploration_steps
-    agent = WallAgent(dt, exploration_steps=exploration_steps, random_state=random_state)
+    # the cap is the agent's own (the controller node's max_exploration_steps): it stops exploring, not the fit of
+    # what was explored, and ends FAILED with the reason
+    agent = WallAgent(dt, exploration_steps=exploration_steps, random_state=random_state,
+                      max_exploration_steps=max_samples)
     for name, value in (explorer_params or {}).items():
         if not hasattr(agent.explorer, name):
             raise ValueError(f'RandomExplorer has no hyperparameter {name}')
@@ -160,8 +164,7 @@ def learn(robot: WheeledRobot, exploration_steps: int, dt: float, random_state: 
     pose, bumped = tuple(start), False
     R, U = [], []
     model, r = None, None
-    while (agent.phase in (ControllerStatus.PHASE_EXPLORING, ControllerStatus.PHASE_LEARNING)
-           and len(R) < max_samples):
+    while agent.phase in (ControllerStatus.PHASE_EXPLORING, ControllerStatus.PHASE_LEARNING):
         if agent.phase == ControllerStatus.PHASE_LEARNING:
             continuous = np.ones(len(R), dtype=bool)
             continuous[-1:] = False

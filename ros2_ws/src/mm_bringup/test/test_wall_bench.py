@@ -55,3 +55,8 @@ def test_learning_loop_takes_the_hyperparameters_under_test():
     assert learned.fitted is not None or learned.detail.startswith('fit failed')
     if learned.model is not None:
         assert learned.model is learned.fitted and learned.model.ready
+    # a cap equal to the budget stops exploring, not the fit of what was explored (it once returned no fit at all)
+    capped = learn(robot, 300, dt, random_state=101, max_samples=300)
+    assert capped.samples == 300
+    assert capped.fitted is not None or capped.detail.startswith('fit failed'), capped.detail
+    assert capped.model is not None or 'the cap' in capped.detail or capped.detail.startswith('fit failed')
