@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import signal
-import socket
 import sys
 import threading
 import time
@@ -34,27 +33,15 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
     supports no guard conditions to wake it.
     rclpy's own signal handlers shut the context down inside the handler, which races with an executor that is
     still working (`RCLError: failed to initialize wait set: the given context is not valid`, exit 1). Here a
-    signal only sets a flag (through `signal.set_wakeup_fd` and a thread that reads it, so whichever thread the
-    kernel delivers the signal to), the loop returns and the node is destroyed before the context is shut down.
-    Further signals during clean-up are ignored (SIGKILL still works); signals before the node's imports are done
-    keep Python's defaults.
+    signal only sets a flag (Python runs the handler in the main thread once spin_once has returned), the loop
+    ends and the node is destroyed before the context is shut down. Further signals during clean-up are ignored
+    (SIGKILL still works); signals before the node's imports are done keep Python's defaults.
     A start-up configuration the node refuses (a parameter out of its range, of the wrong type, or a ValueError from
     the constructor) ends the process with one error line and exit status 2 instead of a traceback.
     """
     stop = threading.Event()
-    reader, writer = socket.socketpair()
-    writer.setblocking(False)
-    signal.set_wakeup_fd(writer.fileno(), warn_on_full_buffer=False)
     for sig in _STOP_SIGNALS:
-        signal.signal(sig, lambda *_: stop.set())      # runs later in the main thread; the reader acts at once
-
-    def read_signals() -> None:
-        while True:
-            received = reader.recv(64)
-            if any(b in (int(s) for s in _STOP_SIGNALS) for b in received):
-                stop.set()
-
-    threading.Thread(target=read_signals, name='stop_signals', daemon=True).start()
+        signal.signal(sig, lambda *_: stop.set())
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     executor = None
