@@ -129,7 +129,9 @@ def test_full_disk_is_reported_at_once_and_the_bag_stays_readable(ros, tmp_path)
     try:
         bag = disk / 'bag'
         with ProcessGraph(log_dir=tmp_path / 'logs') as graph:
-            recorder, publisher = start_recording(ros, graph, bag, flush_period=0.1)
+            # A chunk is committed every 5 messages (100 kB) whatever the timing: with only flush_period, a recorder
+            # starved on a loaded machine built one chunk larger than the disk, and nothing was committed.
+            recorder, publisher = start_recording(ros, graph, bag, flush_period=0.1, chunk_size=100_000)
             publisher.padding = 'x' * 20_000                   # 2 MB/s into 1 MiB
             assert ros.spin_until(lambda: 'disk full' in graph.log_tail(recorder), timeout=15), \
                 graph.log_tail(recorder)
