@@ -53,7 +53,11 @@ def test_same_seeds_give_the_same_model_and_commands_idle_and_under_load(tmp_pat
         burner.kill()
         burner.wait()
     assert len(explored_idle) == EXPLORATION and samples_idle >= EXPLORATION
-    assert explored_busy == explored_idle
+    # a listener whose endpoint matched late misses the first commands: that shows as a shift, anything else is
+    # non-determinism (seen once, unreproduced: which one it was is what this message tells next time)
+    shift = next((k for k in range(1, 50) if explored_busy[k:] == explored_idle[:-k]
+                  or explored_idle[k:] == explored_busy[:-k]), None)
+    assert explored_busy == explored_idle, f'shifted by {shift}' if shift else 'not a shift'
     assert samples_busy == samples_idle
     assert sorted(arrays_busy) == sorted(arrays_idle)
     for key in arrays_idle:

@@ -224,6 +224,28 @@ def test_retries_take_the_alternative_routes_in_turn():
     assert c.retries == 3
 
 
+def test_stuck_in_sensor1_range_with_every_route_tried_fails_with_the_reason():
+    """Sensor 1 sees the wall, the state does not move toward the route's goal and every route was tried: the
+    controller fails at once with the reason instead of standing there until the episode's step limit (measured: a
+    ready model on the paper layout whose routes end where sensor 1 cannot go stood still 1 300 steps)."""
+    field, _ = linear_field()
+    route = (np.array([4.0, 4.0]), np.array([11.0, -3.0]))
+    c = SwitchingController(DT, stall_steps=2, max_retries=1)
+    c.set_goal(np.array([0.17, 0.17]), route[1], route[0])
+    for step in range(100):        # the robot does not move, sensor 1 in range, sensor 2 never
+        u, done, _ = c.command(SPACE_SENSOR1, route[1] + 0.5, None, field, None)
+        if c.failure is not None:
+            break
+    assert c.failure is not None and 'stuck in sensor-1 range' in c.failure and '2 routes' in c.failure, c.failure
+    assert step < 50 and not done and not np.any(u)
+    # blind, the watchdog decides instead (its own test): no such failure there
+    c = SwitchingController(DT, stall_steps=2, max_retries=1)
+    c.set_goal(np.array([0.17, 0.17]), route[1], route[0])
+    for _ in range(100):
+        c.command(SPACE_VIRTUAL, route[1] + 0.5, None, field, None, blind=False)
+    assert c.failure is None
+
+
 # --- closed-loop episodes with a learned model -------------------------------------------------------------------
 @pytest.fixture(scope='module')
 def robot():

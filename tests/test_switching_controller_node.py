@@ -169,6 +169,29 @@ def test_a_model_that_has_not_seen_sensor2_sends_it_exploring_again(learned):
         rig.ros.close()
 
 
+def test_at_the_exploration_cap_a_model_still_not_ready_ends_failed_with_the_reason(learned):
+    """max_exploration_steps caps the exploration, extra exploration included: a model still not ready then is
+    never acted on; the status says FAILED and why."""
+    msg, _ = learned
+    rig = Rig({'exploration_steps': 8, 'max_exploration_steps': 10, 'random_seed': 1})
+    try:
+        for k in range(1, 10):
+            rig.state(k, bumper=False)
+            assert rig.ros.spin_until(lambda: rig.phase() == 'LEARNING' or len(rig.commands) == k)
+        rig.model_pub.publish(blind_message(msg))
+        assert rig.ros.spin_until(lambda: rig.phase() == 'EXPLORING' and len(rig.commands) == 9)
+        rig.state(10, bumper=False)
+        assert rig.ros.spin_until(lambda: len(rig.commands) == 10)
+        rig.state(11, bumper=False)                                # the cap: 10 steps explored
+        assert rig.ros.spin_until(lambda: rig.phase() == 'LEARNING')
+        rig.model_pub.publish(blind_message(msg))
+        assert rig.ros.spin_until(lambda: rig.phase() == 'FAILED')
+        assert 'the cap' in rig.status[-1].detail and 'not seen sensor 2' in rig.status[-1].detail
+        assert len(rig.commands) == 10
+    finally:
+        rig.ros.close()
+
+
 def test_invalid_goals_are_rejected_with_a_reason(learned):
     rig = Rig({'exploration_steps': 0})
     try:

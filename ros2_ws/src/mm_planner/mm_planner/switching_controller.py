@@ -431,5 +431,11 @@ class SwitchingController:
             # Every target reached blind and still no sensor 2: the virtual estimate has drifted too far. Go back
             # to a practised exit (sensor 1 re-localises on re-entry): the next alternative route, else this one.
             self._restart_route()
+        elif (space == SPACE_SENSOR1 and self.waypoint is None and not self.fallbacks
+              and self.stalled_steps > self.stall_steps):
+            # Every route tried and no command brings the state closer: waiting for the step limit changes nothing.
+            self.failure = (f'stuck in sensor-1 range {error:.3f} from the target after {self.retries + 1} routes '
+                            f'({self.stalled_steps} steps without progress)')
+            return np.zeros(2), False, error
         u = self._best_constant_command(virtual_field, coordinates, self.target, 1.0, bounds)
         return u, False, float(np.linalg.norm(self.target - coordinates))

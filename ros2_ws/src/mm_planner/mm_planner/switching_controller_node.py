@@ -77,9 +77,13 @@ class SwitchingControllerNode(Node):
                                      min_value=0.1, max_value=3600.0)
         seed = declare(self, 'random_seed', 0, 'Seed of the exploration; fixed at start-up', min_value=0,
                        max_value=2**31 - 1, read_only=True)
+        max_exploration = declare(self, 'max_exploration_steps', 0, 'Exploration steps, extra exploration included, '
+                                  'after which a model that is still not ready ends FAILED with the reason (0: 4 x '
+                                  'exploration_steps); fixed at start-up', min_value=0, max_value=40_000_000,
+                                  read_only=True)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.agent = WallAgent(self.dt, exploration_steps, max_wheel_speed, tolerance, max_reach_steps,
-                               random_state=seed)
+                               random_state=seed, max_exploration_steps=max_exploration or None)
 
         self.bumped = False
         # The bumper reading of a step travels on its own topic and may arrive after the state: in lockstep the
