@@ -56,6 +56,7 @@ LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durabi
 SPACE_NAMES = {SPACE_SENSOR1: 'sensor1_grid', SPACE_VIRTUAL: 'virtual_sensor1', SPACE_SENSOR2: 'sensor2'}
 MAX_STAMP_AHEAD = 60.0       # [s] a reading stamped further ahead of this node's clock (or newest sample) is forged
 MAX_PENDING_STEPS = 64       # incomplete steps kept while their other readings are on the way
+ALL_SENSORS = (1 << len(SENSOR_NAMES)) - 1    # a step is complete once each sensor's reading of it came
 
 
 def range_problem(msg: Range) -> Optional[str]:
@@ -287,10 +288,13 @@ class SensorManifold(Node):
         self.sensor_limits[index] = (float(msg.min_range), float(msg.max_range))
         values = self.pending.setdefault(stamp, [math.nan] * 5 + [0])
         values[index] = msg.range
-        values[5] += 1
+        # which sensors of the step came (a bit each), not how many messages: while the subscriptions match one by
+        # one at start-up, a re-sent step brings some sensors twice, and counting them made a step of 5 messages
+        # with a sensor missing (NaN), so the exploration took another first command than in an idle run
+        values[5] |= 1 << index
         if len(self.pending) > MAX_PENDING_STEPS:
             del self.pending[min(self.pending)]
-        if values[5] >= 5:
+        if values[5] == ALL_SENSORS:
             del self.pending[stamp]
             for old in [s for s in self.pending if s < stamp]:   # incomplete older steps never complete
                 del self.pending[old]
