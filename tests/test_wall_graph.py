@@ -71,27 +71,24 @@ def test_paper_task_crosses_the_blind_region_and_ends_parallel(run):
 
 
 def test_grid_relearnt_from_the_bag_is_the_online_grid(run):
-    """Replay: samples are rebuilt from the recorded readings (grouped by stamp) and, for each step, the first
-    command recorded after its readings (in lockstep the step's answer; a step the simulator sent again because the
-    command had not reached it yet - slow start-up - is answered again with the same command, and those copies must
-    not shift the later ones), and the model is refitted with the node's hyperparameters."""
-    readings, answers, step = {}, {}, None
-    for record in iter_messages(run['bag']):          # log-time order
+    """Replay: samples are rebuilt from the recorded readings (grouped by stamp) and commands (in order: one per
+    step in lockstep), and the model is refitted with the node's hyperparameters."""
+    readings, commands = {}, []
+    for record in iter_messages(run['bag']):
         topic, data = record.topic, record.data
         if topic.startswith('/wheeled/range/'):
             msg = deserialize_message(data, Range)
-            step = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
-            readings.setdefault(step, [math.nan] * 5)[SENSOR_NAMES.index(topic.rsplit('/', 1)[1])] = msg.range
-        elif step is not None:
-            answers.setdefault(step, deserialize_message(data, Float64MultiArray).data)
+            stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            readings.setdefault(stamp, [math.nan] * 5)[SENSOR_NAMES.index(topic.rsplit('/', 1)[1])] = msg.range
+        else:
+            commands.append(deserialize_message(data, Float64MultiArray).data)
     online = run['model']
     n = online.samples
-    steps = sorted(readings)[:n]
-    assert len(steps) == n and all(s in answers for s in steps[:-1])
-    R = np.array([readings[s] for s in steps], dtype=float)
-    U = np.array([answers[s] for s in steps[:-1]] + [[0.0, 0.0]], dtype=float)
+    R = np.array([readings[s] for s in sorted(readings)][:n], dtype=float)
+    U = np.array(list(commands[:n - 1]) + [[0.0, 0.0]], dtype=float)
     continuous = np.ones(n, dtype=bool)
     continuous[-1] = False
+    assert len(R) == n and len(commands) >= n - 1
     replayed = SensorManifoldModel(online.dt, online.grid_rows, online.grid_cols,
                                    jacobian_degree=online.jacobian_degree).fit(R, U, continuous)
     np.testing.assert_allclose(replayed.grid_.nodes_.ravel(), online.grid_nodes, atol=1e-9)
