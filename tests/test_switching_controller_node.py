@@ -329,8 +329,10 @@ def test_parameter_updates_are_validated():
         assert not node.set_parameters([Parameter('max_wheel_speed', value=100.0)])[0].successful   # range
         assert not node.set_parameters([Parameter('max_reach_steps', value=0)])[0].successful
         # Fixed at start-up (they would have no effect later): read-only.
-        for name, value in (('dt', 0.1), ('exploration_steps', 5), ('random_seed', 3)):
+        for name, value in (('dt', 0.1), ('exploration_steps', 5), ('random_seed', 3), ('max_exploration_steps', 20)):
             assert not node.set_parameters([Parameter(name, value=value)])[0].successful, name
+        assert not node.set_parameters([Parameter('max_exploration_steps', value=-1)])[0].successful
+        assert not node.set_parameters([Parameter('max_exploration_steps', value=math.nan)])[0].successful
         assert node.agent.max_wheel_speed == 6.0 and node.agent.tolerance == 0.01
         assert node.set_parameters([Parameter('tolerance', value=0.02)])[0].successful
         assert node.agent.tolerance == 0.02
