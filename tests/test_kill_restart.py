@@ -4,7 +4,8 @@ still learns and completes the paper's task.
 
 The simulator is the world: its restart continues its predecessor's time and pose (`initial_step`, `initial_pose`,
 taken by this experimenter from the evaluation-only odometry), as a supervisor would restore a crashed simulator.
-The controller and the manifold node restart from nothing and must rejoin the loop by themselves."""
+The controller restarts from nothing, the manifold node with the samples it had appended to its samples file (none of
+the explored data is lost); both must rejoin the loop by themselves."""
 import math
 import os
 import signal
@@ -42,13 +43,23 @@ def _kill_and_restart(wall: WallGraph, executable: str, clock: list) -> float:
     old.process.wait(10)
     step = _step(wall)
     if executable == 'wheeled_sim':
-        wall.ros.spin_for(0.2)                    # whatever it published before it died
+        # whatever it published before it died: this process may be seconds behind on a loaded machine, so wait
+        # until /clock has been quiet for a second (a stale step made the restart go back in time)
+        deadline, heard, quiet_since = time.monotonic() + 20.0, len(clock), time.monotonic()
+        while time.monotonic() - quiet_since < 1.0 and time.monotonic() < deadline:
+            wall.ros.spin_for(0.1)
+            if len(clock) != heard:
+                heard, quiet_since = len(clock), time.monotonic()
         step = max(_clock_step(clock), _step(wall))
         parameters.update(initial_step=step + 1, initial_pose=list(wall.last_pose))
     old.log_path.rename(old.log_path.with_name(f'{executable}.killed.log'))
+    samples = wall.samples
     wall.nodes[index] = wall.graph.start(old.package, old.executable, parameters)
     wall.spin_until(lambda: _step(wall) >= step + RESUMED_STEPS, RECOVERY_TIMEOUT,
                     f'the loop to run again after {executable} was killed at step {step}')
+    if executable == 'sensor_manifold':
+        # its samples were on disk (samples_path): the restarted learner carries on with all that was explored
+        assert wall.samples > samples, f'{wall.samples} samples after the restart, {samples} before the kill'
     return time.monotonic() - killed_at
 
 

@@ -12,6 +12,8 @@ from mm_bringup.wall_experiment import explore
 from mm_manifold.dimension import LocalPCADimension
 from mm_manifold.grid import ElasticGrid
 from mm_manifold.jacobian import PolynomialJacobianField
+from mm_manifold.sample_assembly import Resent, Sample, SampleAssembler
+from mm_manifold.sample_log import SampleLog
 from mm_common.wheeled_sensors import SENSOR1, SENSOR2
 from mm_manifold.sensor_manifold import (SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SensorManifoldModel,
                                          StateTracker, find_excursions, group_in_range, refit_problem)
@@ -593,3 +595,66 @@ def test_state_tracker_bridges_lost_readings_then_gives_up(model, robot):
     assert filtered[1] == math.inf and space == SPACE_VIRTUAL
     with pytest.raises(ValueError):
         tracker.update(r[:3], None)
+
+
+def test_sample_log_round_trip_and_damaged_lines(tmp_path):
+    """mm_manifold.sample_log: what is appended comes back (inf and nan readings included); a damaged line in the
+    middle is dropped and the sample after it starts a new chain; a file that is not a sample log is refused."""
+    path = tmp_path / 's.csv'
+    log = SampleLog(path, 0.05)
+    log.open()
+    rows = [([0.5, 0.6, 0.7, np.inf, np.inf], None, False), ([0.4, np.nan, 0.6, np.inf, np.inf], [1.0, 2.0], True),
+            ([np.inf, np.inf, np.inf, 0.2, 0.21], [0.5, -0.5], True), ([0.3, 0.3, 0.3, np.inf, np.inf], [1, 1], True)]
+    for stamp, (reading, command, follows) in enumerate(rows):
+        log.append(stamp, np.array(reading), None if command is None else np.array(command, dtype=float), follows)
+    log.close()
+    kept = SampleLog(path, 0.05).load()
+    np.testing.assert_array_equal(np.array(kept.readings), np.array([r for r, _, _ in rows]))
+    np.testing.assert_array_equal(np.array(kept.commands), np.array([c for _, c, _ in rows[1:]], dtype=float))
+    assert kept.continuous == [True, True, True] and kept.problems == []
+    lines = path.read_text().splitlines()
+    lines[3] = lines[3].replace('0.5', 'x', 1)                # the third sample is damaged
+    path.write_text('\n'.join(lines) + '\n')
+    kept = SampleLog(path, 0.05).load()
+    assert len(kept.readings) == 3 and kept.continuous == [True, False] and kept.problems[0].startswith('line 4')
+    for header in ('not json', '{"format": "other", "version": 1, "dt": 0.05}'):
+        path.write_text(header + '\n' + '\n'.join(lines[1:]) + '\n')
+        with pytest.raises(ValueError, match='is not a'):
+            SampleLog(path, 0.05).load()
+    with pytest.raises(ValueError, match='dt 0.1'):
+        path.write_text('\n'.join(lines) + '\n')
+        SampleLog(path, 0.1).load()
+
+
+def test_sample_assembly_in_arrival_order():
+    """mm_manifold.sample_assembly (the node's rule, also the bag replay's): a step is a sample once every sensor's
+    reading came; a command arriving after the next step's readings still belongs to that step; a step re-sent with
+    its command re-sent too is one sample whose chain is broken (two commands came), and later pairs are not shifted."""
+    asm = SampleAssembler(5)
+
+    def step(stamp, value, only=range(5)):
+        events = []
+        for i in only:
+            events += asm.reading(i, stamp, value)
+        return [e for e in events if isinstance(e, Sample)]
+
+    assert step(0, 0.5, only=(0, 1, 2, 3)) == [] and step(0, 0.5, only=(0, 1)) == []   # sensors twice, one missing
+    first = step(0, 0.5, only=(4,))
+    assert len(first) == 1 and first[0].command is None and not first[0].follows
+    asm.command([1.0, 2.0])
+    asm.reading(0, 0, 0.5)                                       # step 0 re-sent (start-up), its command re-sent
+    resent = asm.reading(1, 0, 0.5) + asm.reading(2, 0, 0.5) + asm.reading(3, 0, 0.5) + asm.reading(4, 0, 0.5)
+    assert [type(e) for e in resent] == [Resent]
+    asm.command([1.0, 2.0])
+    s1 = step(1, 0.6)
+    assert len(s1) == 1 and not s1[0].follows and list(s1[0].command) == [1.0, 2.0]
+    assert step(2, 0.7) == [] and asm.waiting is not None        # its command is late: the step waits for it
+    s2 = asm.command([3.0, 3.0])
+    assert len(s2) == 1 and s2[0].follows and s2[0].stamp_ns == 2 and list(s2[0].command) == [3.0, 3.0]
+    assert step(3, 0.8) == []                                    # no command will come: the step is re-sent
+    s3 = step(3, 0.8)
+    assert len(s3) == 1 and s3[0].command is None and not s3[0].follows
+    asm.command([4.0, 4.0])
+    assert asm.new_timeline() == [] and asm.commands_since_sample == []
+    s4 = step(1, 0.9)                                            # the clock went back: a new chain, no waiting
+    assert len(s4) == 1 and not s4[0].follows

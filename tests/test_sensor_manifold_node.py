@@ -3,11 +3,13 @@ commands and readings are rejected and the next valid ones used; a saved model i
 message on the latched model topic and used for the state; a corrupt model file means learning anew; a refit that is
 worse than the live model does not replace it; bad parameter updates are refused."""
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 from mm_common.ros_harness import RosHarness
 from mm_msgs.msg import JacobianEstimate, ManifoldState
+from rosgraph_msgs.msg import Clock
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -95,7 +97,7 @@ def test_five_ranges_of_one_stamp_make_one_state(rig):
     # Four of five readings of a step never make a sample; the next complete step does (one state, not two).
     rig.publish_step(2, [0.5, 0.6, 0.7, INF, INF], only=range(4))
     rig.command([1.0, 1.0])
-    assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 1)
+    assert rig.ros.spin_until(lambda: len(rig.node.assembler.commands_since_sample) == 1)
     rig.publish_step(3, [INF, INF, INF, 0.2, 0.21])
     state = rig.wait_states(2)
     rig.ros.spin_for(0.5)                              # nothing else may come out of the incomplete step
@@ -125,7 +127,7 @@ def test_a_republished_step_is_no_new_sample_but_its_state_is_sent_again(rig):
     assert again.header.stamp.sec == 1 and again.samples == 1 and len(rig.node.readings) == 1
     rig.publish_step(0, [0.5, 0.6, 0.7, INF, INF])     # older than the newest sample: stale, dropped
     rig.command([1.0, 1.0])
-    assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 1)
+    assert rig.ros.spin_until(lambda: len(rig.node.assembler.commands_since_sample) == 1)
     rig.publish_step(2, [0.5, 0.6, 0.8, INF, INF])
     state = rig.wait_states(3)
     assert state.header.stamp.sec == 2 and state.samples == 2 and len(rig.states) == 3
@@ -138,8 +140,8 @@ def test_bad_commands_are_ignored_and_a_missing_command_breaks_the_chain(rig):
     for bad in ([math.nan, 1.0], [1.0, 2.0, 3.0], [INF, 0.0], []):
         rig.command(bad)
     rig.command([2.0, -2.0])                           # same topic, in order: the bad ones were handled before it
-    assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 1)
-    np.testing.assert_array_equal(rig.node.commands_since_sample[0], [2.0, -2.0])
+    assert rig.ros.spin_until(lambda: len(rig.node.assembler.commands_since_sample) == 1)
+    np.testing.assert_array_equal(rig.node.assembler.commands_since_sample[0], [2.0, -2.0])
     rig.publish_step(2, [math.nan, 0.6, 0.7, INF, INF])   # a lost reading (REP 117 NaN)
     state = rig.wait_states(2)
     assert list(state.in_range) == [False, True, True, False, False]
@@ -148,14 +150,14 @@ def test_bad_commands_are_ignored_and_a_missing_command_breaks_the_chain(rig):
     # a chain break once the simulator re-sends the step (it does so only when no command came).
     rig.publish_step(3, [0.5, 0.6, 0.7, INF, INF])
     rig.ros.spin_for(1.5)
-    assert len(rig.states) == 2 and rig.node.waiting is not None
+    assert len(rig.states) == 2 and rig.node.assembler.waiting is not None
     rig.publish_step(3, [0.5, 0.6, 0.7, INF, INF])
     state = rig.wait_states(3)
     assert state.samples == 3 and rig.node.continuous == [True, False]
     # Two commands between two steps are not the lockstep contract either.
     rig.command([1.0, 1.0])
     rig.command([1.0, 1.0])
-    assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 2)
+    assert rig.ros.spin_until(lambda: len(rig.node.assembler.commands_since_sample) == 2)
     rig.publish_step(4, [0.5, 0.6, 0.7, INF, INF])
     rig.wait_states(4)
     assert rig.node.continuous == [True, False, False]
@@ -199,7 +201,7 @@ def test_loads_saved_model_announces_it_and_tracks_the_state(model_file):
         # One command, then sensor 1 loses the wall: the coordinates continue in the virtual space with that
         # command (the node pairs each sample with the command that produced it).
         rig.command([-2.0, 2.0])
-        assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 1)
+        assert rig.ros.spin_until(lambda: len(rig.node.assembler.commands_since_sample) == 1)
         rig.publish_step(2, [INF] * 5)
         state = rig.wait_states(2)
         assert state.active_space == SPACE_VIRTUAL and state.virtual_uncertainty > 0
@@ -228,7 +230,7 @@ def test_a_model_that_has_not_seen_sensor2_is_refitted_after_more_samples(model_
                 rig.publish_step(sec, reading)
                 rig.wait_states(sec)
                 rig.command([1.0, 1.0])
-                assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 1)
+                assert rig.ros.spin_until(lambda: len(rig.node.assembler.commands_since_sample) == 1)
             if refits:
                 # a fit on the 25 samples since the start (100 // 4); too few to succeed, but it was tried
                 assert rig.ros.spin_until(lambda: rig.node.fitted_samples != 0)
@@ -309,7 +311,7 @@ def test_a_small_refit_never_replaces_a_good_loaded_model(model_file, tmp_path):
             rig.publish_step(k + 1, reading)
             rig.wait_states(k + 1)
             rig.command(command)
-            assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 1)
+            assert rig.ros.spin_until(lambda: len(rig.node.assembler.commands_since_sample) == 1)
         assert rig.ros.spin_until(lambda: rig.node.fitted_samples == 130 and rig.node.fitting is None, timeout=60)
         assert rig.node.model is live and target.read_bytes() == path.read_bytes()
         rig.subscribe_model()
@@ -330,11 +332,85 @@ def test_a_model_that_cannot_be_saved_is_still_used(tmp_path):
             rig.publish_step(k + 1, reading)
             rig.wait_states(k + 1)
             rig.command(command)
-            assert rig.ros.spin_until(lambda: len(rig.node.commands_since_sample) == 1)
+            assert rig.ros.spin_until(lambda: len(rig.node.assembler.commands_since_sample) == 1)
         assert rig.ros.spin_until(lambda: rig.node.model is not None, timeout=60)
         rig.subscribe_model()
         assert rig.ros.spin_until(lambda: rig.models, timeout=10)
         assert rig.models[-1].samples == 100
         assert not list(tmp_path.parent.glob(f'.{tmp_path.name}*.npz'))     # the temp file was removed
+    finally:
+        rig.ros.close()
+
+
+def test_samples_survive_a_restart_and_a_foreign_file_is_moved_aside(tmp_path):
+    """samples_path: every sample is on disk as soon as it is taken; a restarted node carries on with them (the
+    first new sample starts a new chain), a line cut by a crash is dropped, and a file of another dt is set aside."""
+    path = tmp_path / 'samples.csv'
+    first = Rig({'samples_path': str(path), 'learn_after': 100000})
+    try:
+        for sec, readings in enumerate(([0.5, 0.6, 0.7, INF, INF], [0.4, math.nan, 0.6, INF, INF],
+                                        [INF, INF, INF, 0.2, 0.21]), start=1):
+            if sec > 1:
+                first.command([1.0, -1.0 * sec])
+                assert first.ros.spin_until(lambda: len(first.node.assembler.commands_since_sample) == 1)
+            first.publish_step(sec, readings)
+            first.wait_states(sec)
+        before = ([r.copy() for r in first.node.readings], [c.copy() for c in first.node.commands],
+                  list(first.node.continuous))
+        # what a SIGKILL leaves on disk: the node is never destroyed, the file holds every sample already
+        assert len(path.read_text().splitlines()) == 1 + 3
+    finally:
+        first.ros.close()
+    with open(path, 'a') as f:
+        f.write('17,1,1.0,1.0,0.5,0.6')                       # a line cut in the middle by a crash
+    second = Rig({'samples_path': str(path), 'learn_after': 100000})
+    try:
+        node = second.node
+        assert len(node.readings) == 3 and node.continuous == before[2] == [True, True]
+        np.testing.assert_array_equal(np.array(node.readings), np.array(before[0]))
+        np.testing.assert_array_equal(np.array(node.commands), np.array(before[1]))
+        second.publish_step(10, [0.5, 0.6, 0.7, INF, INF])
+        state = second.wait_states(1)
+        assert state.samples == 4 and node.continuous == [True, True, False]
+    finally:
+        second.ros.close()
+    lines = path.read_text().splitlines()
+    assert len(lines) == 1 + 3 + 1 + 1 and lines[4] == '17,1,1.0,1.0,0.5,0.6'   # the cut line stays a line of its own
+    foreign = Rig({'samples_path': str(path), 'dt': 0.1, 'learn_after': 100000})
+    try:
+        assert foreign.node.readings == [] and foreign.node.sample_log is not None
+    finally:
+        foreign.ros.close()
+    assert Path(f'{path}.unreadable').read_text().splitlines()[1:] == lines[1:]
+
+
+def test_a_clock_that_went_back_starts_a_new_chain_and_old_stamps_stay_rejected():
+    """A simulator restarted from an earlier time moves /clock back: its steps are samples again (a new chain); a
+    reading stamped in the past while the clock runs on is still rejected."""
+    rig = Rig({'learn_after': 100000, 'use_sim_time': True})
+    try:
+        clock = rig.client.create_publisher(Clock, '/clock', QOS)
+        assert rig.ros.spin_until(lambda: clock.get_subscription_count() > 0, timeout=10)
+
+        def clock_at(sec):
+            msg = Clock()
+            msg.clock.sec = sec
+            clock.publish(msg)
+            assert rig.ros.spin_until(lambda: rig.node.get_clock().now().nanoseconds == sec * 10 ** 9)
+
+        for n, sec in enumerate((9, 10), start=1):
+            clock_at(sec)
+            if n > 1:
+                rig.command([1.0, 1.0])
+                assert rig.ros.spin_until(lambda: len(rig.node.assembler.commands_since_sample) == 1)
+            rig.publish_step(sec, [0.5, 0.6, 0.7, INF, INF])
+            rig.wait_states(n)
+        rig.publish_step(5, [0.5, 0.6, 0.7, INF, INF])           # the clock is at 10 s: stale or forged
+        rig.ros.spin_for(0.3)
+        assert len(rig.states) == 2 and rig.node.rejected == 5
+        clock_at(4)                                               # the simulator restarted at 4 s
+        rig.publish_step(4, [0.4, 0.6, 0.7, INF, INF])
+        state = rig.wait_states(3)
+        assert state.header.stamp.sec == 4 and state.samples == 3 and rig.node.continuous == [True, False]
     finally:
         rig.ros.close()

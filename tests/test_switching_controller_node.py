@@ -10,6 +10,7 @@ import pytest
 from mm_common.ros_harness import RosHarness
 from mm_msgs.msg import ControllerStatus, ManifoldState, SensorGoal
 from mm_msgs.srv import SetSensorGoal
+from rosgraph_msgs.msg import Clock
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
@@ -392,5 +393,36 @@ def test_node_and_offline_runner_command_alike(learned):
         state.header.stamp.sec = len(episode.commands) + 1
         rig.state_pub.publish(state)
         assert rig.ros.spin_until(lambda: rig.phase() == 'GOAL_REACHED')
+    finally:
+        rig.ros.close()
+
+
+def test_a_clock_that_went_back_starts_a_new_timeline_and_old_stamps_stay_rejected():
+    """A simulator restarted from an earlier time moves /clock back: states of the new time are answered; a state
+    stamped in the past while the clock runs on is still rejected."""
+    rig = Rig({'exploration_steps': 100, 'random_seed': 1, 'use_sim_time': True})
+    try:
+        clock = rig.client.create_publisher(Clock, '/clock', QOS)
+        assert rig.ros.spin_until(lambda: clock.get_subscription_count() > 0, timeout=10)
+
+        def clock_at(sec):
+            msg = Clock()
+            msg.clock.sec = sec
+            clock.publish(msg)
+            assert rig.ros.spin_until(lambda: rig.node.get_clock().now().nanoseconds == sec * 10 ** 9)
+
+        for k in (8, 9, 10):
+            clock_at(k)
+            rig.state(k, bumper=False)
+            assert rig.ros.spin_until(lambda: len(rig.commands) == k - 7), f'no command for state {k}'
+        rig.state(5, bumper=False)                    # the clock is at 10 s: a stale or forged state
+        rig.ros.spin_for(0.3)
+        assert len(rig.commands) == 3
+        clock_at(4)                                   # the simulator restarted at 4 s
+        rig.state(4, bumper=False)
+        assert rig.ros.spin_until(lambda: len(rig.commands) == 4), 'the state of the new timeline got no command'
+        clock_at(5)
+        rig.state(5, bumper=False)
+        assert rig.ros.spin_until(lambda: len(rig.commands) == 5)
     finally:
         rig.ros.close()

@@ -18,6 +18,7 @@ from std_msgs.msg import Float64MultiArray
 from mm_bringup.process_graph import ProcessGraph
 from mm_bringup.wall_experiment import PAPER_GOAL_POSES, PAPER_START, sensor2_goal_reading
 from mm_bringup.wall_graph import WallGraph
+from mm_manifold.sample_assembly import Sample, SampleAssembler
 from mm_manifold.sensor_manifold import SensorManifoldModel
 from mm_common.wheeled_sensors import SENSOR2, SENSOR_NAMES
 from mm_sim.wheeled_model import WheeledRobot
@@ -71,24 +72,26 @@ def test_paper_task_crosses_the_blind_region_and_ends_parallel(run):
 
 
 def test_grid_relearnt_from_the_bag_is_the_online_grid(run):
-    """Replay: samples are rebuilt from the recorded readings (grouped by stamp) and commands (in order: one per
-    step in lockstep), and the model is refitted with the node's hyperparameters."""
-    readings, commands = {}, []
+    """Replay: the recorded readings and commands, in the order they were recorded, go through the sample assembly
+    the node uses (mm_manifold.sample_assembly: steps by stamp, each sample's command, chain breaks where a step did
+    not follow exactly one command, re-sent steps and re-sent commands included), and the model is refitted with the
+    node's hyperparameters."""
+    assembler, samples = SampleAssembler(len(SENSOR_NAMES)), []
     for record in iter_messages(run['bag']):
         topic, data = record.topic, record.data
         if topic.startswith('/wheeled/range/'):
             msg = deserialize_message(data, Range)
             stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
-            readings.setdefault(stamp, [math.nan] * 5)[SENSOR_NAMES.index(topic.rsplit('/', 1)[1])] = msg.range
+            events = assembler.reading(SENSOR_NAMES.index(topic.rsplit('/', 1)[1]), stamp, msg.range)
         else:
-            commands.append(deserialize_message(data, Float64MultiArray).data)
+            events = assembler.command(deserialize_message(data, Float64MultiArray).data)
+        samples += [e for e in events if isinstance(e, Sample)]
     online = run['model']
     n = online.samples
-    R = np.array([readings[s] for s in sorted(readings)][:n], dtype=float)
-    U = np.array(list(commands[:n - 1]) + [[0.0, 0.0]], dtype=float)
-    continuous = np.ones(n, dtype=bool)
-    continuous[-1] = False
-    assert len(R) == n and len(commands) >= n - 1
+    assert len(samples) >= n
+    R = np.array([s.reading for s in samples[:n]], dtype=float)
+    U = np.array([s.command if s.command is not None else np.zeros(2) for s in samples[1:n]] + [np.zeros(2)])
+    continuous = np.array([s.follows for s in samples[1:n]] + [False])
     replayed = SensorManifoldModel(online.dt, online.grid_rows, online.grid_cols,
                                    jacobian_degree=online.jacobian_degree).fit(R, U, continuous)
     np.testing.assert_allclose(replayed.grid_.nodes_.ravel(), online.grid_nodes, atol=1e-9)

@@ -99,7 +99,7 @@ class WallGraph:
         the loop; each waits until the recorder subscribes to the topics of the nodes before it, so the bag holds the
         loop from its first step. `model_path`: where the learner keeps its model (default <work_dir>/wall_model.npz;
         '' = not persisted, as in the shipped sensor_manifold.yaml: the controller gets the model as a message
-        either way, kept here as `model_msg`). `sim_params_files`: parameter files for wheeled_sim (e.g. wheeled_sim.yaml
+        either way, kept here as `model_msg`) and, next to it (.samples.csv), its samples. `sim_params_files`: parameter files for wheeled_sim (e.g. wheeled_sim.yaml
         and a sensor layout of mm_sim/layouts), loaded in order before the parameters set here."""
         self.work_dir = Path(work_dir)
         self.work_dir.mkdir(parents=True, exist_ok=True)
@@ -107,6 +107,8 @@ class WallGraph:
         self.graph = graph or ProcessGraph(log_dir=self.work_dir / 'logs')
         learner_path = '' if model_path == '' else str(Path(model_path) if model_path else
                                                         self.work_dir / 'wall_model.npz')
+        # the samples are kept next to a kept model (a restarted learner resumes with all it explored)
+        samples_path = '' if learner_path == '' else str(Path(learner_path).with_suffix('.samples.csv'))
         self.ros = RosHarness()
         node = self.node = self.ros.node('wall_experimenter')
         self.status: Optional[ControllerStatus] = None
@@ -137,7 +139,7 @@ class WallGraph:
                                                     'exploration_steps': exploration_steps},
              ['/wheeled/wheel_velocity_controller/commands', '/wheeled/controller/status']),
             ('mm_manifold', 'sensor_manifold', {**sim_time, 'dt': dt, 'learn_after': exploration_steps,
-                                                'model_path': learner_path}, []),
+                                                'model_path': learner_path, 'samples_path': samples_path}, []),
         ]
         sim_files = [a for f in sim_params_files for a in ('--params-file', str(f))]
         for attempt in range(LOOP_START_ATTEMPTS):

@@ -269,3 +269,10 @@ def array_problem(values: Sequence[float], what: str, length: Optional[int] = No
         if bounds is not None and not bounds[0] <= v <= bounds[1]:
             return f'{what}[{i}]={v} outside [{bounds[0]}, {bounds[1]}]'
     return ''
+
+
+def clock_went_back(now_ns: int, newest_ns: Optional[int], stamp_ns: int) -> bool:
+    """Whether a stamp older than the newest one taken is explained by the clock itself having gone back past that
+    newest stamp (a simulator restarted from an earlier time, a bag played again): a new timeline to follow, not a
+    stale or forged message (those come while the clock runs on, and stay rejected)."""
+    return newest_ns is not None and 0 < now_ns < newest_ns and stamp_ns <= now_ns

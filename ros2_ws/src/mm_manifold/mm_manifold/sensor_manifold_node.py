@@ -3,9 +3,9 @@
     ./mm run mm_manifold sensor_manifold --ros-args -p use_sim_time:=true -p model_path:=results/wall_model.npz
 
 Inputs (what the robot senses and commands, nothing else): the five `wheeled/range/*` readings, grouped by stamp
-into one sample per simulator step, and its own `wheeled/wheel_velocity_controller/commands`. The command that moved
-the robot to a sample travels on another topic and may arrive after the sample's readings, so a sample with no command
-yet waits for it - for as long as it takes, never decided by a wall-clock timeout (the learned data must not depend on
+into one sample per simulator step, and its own `wheeled/wheel_velocity_controller/commands` (the rule below lives
+in mm_manifold.sample_assembly, which a bag replay uses too). The command that moved the robot to a sample travels on
+another topic and may arrive after the sample's readings, so a sample with no command yet waits for it - for as long as it takes, never decided by a wall-clock timeout (the learned data must not depend on
 machine load). It stops waiting when the simulator shows that no command will come: it re-publishes the sample's step
 (it does so only after a period without a command, e.g. after a reset) or publishes a newer one. A wait longer than
 `stall_warning` wall seconds is reported (throttled), not resolved. A sample that does not follow exactly one command
@@ -21,7 +21,9 @@ worse than the live model (fewer samples, cannot map goals the live one can, few
 prediction of the newest samples) is logged and dropped. The model is published as an mm_msgs/SensorManifoldModel
 message on the latched `wheeled/manifold/model` topic (the controller needs no file and may run on another host); with
 `model_path` set it is also saved atomically there (np.savez + JSON) and loaded at start (every field checked; a bad
-file means learning anew), so a restart does not relearn. Every sample gives one `wheeled/manifold/state` (and a
+file means learning anew), so a restart does not relearn. With `samples_path` set every sample is appended to that
+file as it is taken (mm_manifold.sample_log) and the file is loaded at start, so a crashed learner restarts with all it
+had explored (the first sample after the restart starts a new chain). Every sample gives one `wheeled/manifold/state` (and a
 Jacobian estimate). Every input is validated (Range: REP 117, within its limits, sane stamps; commands: two finite
 values) and a bad one is dropped with a throttled log line saying why.
 """
@@ -34,7 +36,8 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 import numpy as np
-from mm_common.node_utils import declare, reject_non_finite, run_node
+from builtin_interfaces.msg import Time
+from mm_common.node_utils import clock_went_back, declare, reject_non_finite, run_node
 from mm_common.qos import LOOP_QOS  # RELIABLE, deep history: see mm_common/qos.py
 from mm_common.wheeled_sensors import SENSOR1, SENSOR2, SENSOR_NAMES
 from mm_msgs.msg import JacobianEstimate, ManifoldState
@@ -47,6 +50,8 @@ from sensor_msgs.msg import Range
 from std_msgs.msg import Float64MultiArray
 
 from mm_manifold.model_message import model_to_msg
+from mm_manifold.sample_assembly import Resent, Sample, SampleAssembler
+from mm_manifold.sample_log import SampleLog
 from mm_manifold.sensor_manifold import (SPACE_NONE, SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SensorManifoldModel,
                                          StateTracker, refit_problem)
 
@@ -55,8 +60,6 @@ from mm_manifold.sensor_manifold import (SPACE_NONE, SPACE_SENSOR1, SPACE_SENSOR
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 SPACE_NAMES = {SPACE_SENSOR1: 'sensor1_grid', SPACE_VIRTUAL: 'virtual_sensor1', SPACE_SENSOR2: 'sensor2'}
 MAX_STAMP_AHEAD = 60.0       # [s] a reading stamped further ahead of this node's clock (or newest sample) is forged
-MAX_PENDING_STEPS = 64       # incomplete steps kept while their other readings are on the way
-ALL_SENSORS = (1 << len(SENSOR_NAMES)) - 1    # a step is complete once each sensor's reading of it came
 
 
 def range_problem(msg: Range) -> Optional[str]:
@@ -89,6 +92,9 @@ class SensorManifold(Node):
                                        min_value=0, max_value=4, read_only=True)
         self.model_path = declare(self, 'model_path', '', 'Where the learner keeps its model across restarts ("": '
                                   'not persisted); the model reaches the controller as a message', read_only=True)
+        self.samples_path = declare(self, 'samples_path', '', 'File the samples are appended to as they come and '
+                                    'loaded from at start, so a crash loses none ("": kept in memory only)',
+                                    read_only=True)
         self.hold_steps = declare(self, 'hold_steps', 3, 'Lost (NaN) readings bridged with the last value for '
                                   'this many steps', min_value=0, max_value=100)
         # Reporting only: what is learned never depends on how long a message took (determinism under load).
@@ -102,10 +108,8 @@ class SensorManifold(Node):
         self.readings: List[np.ndarray] = []
         self.commands: List[np.ndarray] = []
         self.continuous: List[bool] = []
-        self.pending: Dict[int, List[float]] = {}
-        self.commands_since_sample: List[np.ndarray] = []
-        self.waiting: Optional[tuple] = None      # (reading, stamp, steady time) of a sample waiting for its command
-        self.last_sample_ns: Optional[int] = None  # stamp of the newest sample taken
+        self.assembler = SampleAssembler(len(SENSOR_NAMES))
+        self.waiting_since = 0                    # steady time [ns] the assembler's waiting sample began to wait
         self.last_state: Optional[ManifoldState] = None
         self.sensor_limits: Dict[int, tuple] = {}  # sensor index -> (min_range, max_range) of its latest reading
         self.rejected = 0
@@ -130,6 +134,8 @@ class SensorManifold(Node):
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(0.2, self._collect_fit, clock=self.steady)
         self.create_timer(0.5, self._report_stall, clock=self.steady)
+        self.sample_log: Optional[SampleLog] = None
+        self._load_samples()
         self._load()
 
     def _on_set_parameters(self, params) -> SetParametersResult:
@@ -150,6 +156,47 @@ class SensorManifold(Node):
                                throttle_duration_sec=1.0)
 
     # --- model lifecycle ----------------------------------------------------------------------------------------
+    def _load_samples(self) -> None:
+        """The samples a previous run of this node kept; a file that is not this robot's is moved aside."""
+        if not self.samples_path:
+            return
+        log = SampleLog(self.samples_path, self.dt)
+        try:
+            kept = log.load()
+        except (ValueError, OSError, UnicodeDecodeError) as exc:
+            aside = Path(f'{self.samples_path}.unreadable')
+            self.get_logger().error(f'{exc}; moved to {aside}, collecting samples anew')
+            try:
+                Path(self.samples_path).replace(aside)
+            except OSError as move_error:
+                self.get_logger().error(f'could not move it ({move_error}); samples are kept in memory only')
+                return
+            kept = None
+        if kept is not None and kept.readings:
+            self.readings, self.commands, self.continuous = kept.readings, kept.commands, kept.continuous
+            self.get_logger().info(f'loaded {len(self.readings)} samples from {self.samples_path}'
+                                   + (f' ({len(kept.problems)} bad lines dropped, first: {kept.problems[0]})'
+                                      if kept.problems else ''))
+        try:
+            log.open()
+            self.sample_log = log
+        except OSError as exc:
+            self.get_logger().error(f'cannot append to {self.samples_path} ({exc}); samples are kept in memory only')
+
+    def _keep_sample(self, stamp_ns: int, reading: np.ndarray, command: Optional[np.ndarray], follows: bool) -> None:
+        if self.sample_log is None:
+            return
+        try:
+            self.sample_log.append(stamp_ns, reading, command, follows)
+        except OSError as exc:        # a full disk loses the file's copy, not the sample
+            self.get_logger().error(f'could not append a sample to {self.samples_path} ({exc}); it is kept in '
+                                    'memory only', throttle_duration_sec=5.0)
+
+    def destroy_node(self):
+        if self.sample_log is not None:
+            self.sample_log.close()
+        return super().destroy_node()
+
     def _load(self) -> None:
         if not self.model_path or not Path(self.model_path).exists():
             return
@@ -163,6 +210,8 @@ class SensorManifold(Node):
             self.get_logger().error(f'{exc}; learning a new model')
             return
         self._install(model)
+        if model.n_samples_ <= len(self.readings):      # the kept samples include the ones it was fitted on
+            self.fitted_samples = self.live_fitted_on = model.n_samples_
         self.get_logger().info(f'loaded model from {self.model_path} ({model.n_samples_} samples)')
 
     def _install(self, model: SensorManifoldModel) -> None:
@@ -251,32 +300,33 @@ class SensorManifold(Node):
             # The simulator rejects it too: it did not move the robot, so it is no part of the chain either.
             self._reject('command', f'{list(data)}: need two finite wheel speeds')
             return
-        self.commands_since_sample.append(data)
-        if self.waiting is not None:
-            reading, stamp, _ = self.waiting
-            self.waiting = None
-            self._on_sample(reading, stamp)
+        self._take(self.assembler.command(data))
 
     def _report_stall(self) -> None:
         """Timer: say what a long-waiting sample misses; the wait itself goes on (only the simulator ends it)."""
-        if self.waiting is None:
+        if self.assembler.waiting is None:
             return
-        waited = (self.steady.now().nanoseconds - self.waiting[2]) * 1e-9
+        waited = (self.steady.now().nanoseconds - self.waiting_since) * 1e-9
         if waited >= self.stall_warning:
-            stamp = self.waiting[1]
             self.get_logger().warn(
-                f'sample {stamp.sec + stamp.nanosec * 1e-9:.3f} s has waited {waited:.1f} s for the '
+                f'sample {self.assembler.waiting[1] * 1e-9:.3f} s has waited {waited:.1f} s for the '
                 'wheeled/wheel_velocity_controller/commands message that produced it (no state published meanwhile); '
                 'it is taken as a chain break once the simulator re-sends that step or sends a newer one',
                 throttle_duration_sec=5.0)
 
     def _stamp_problem(self, stamp: int) -> Optional[str]:
         now = self.get_clock().now().nanoseconds
-        reference, what = (now, 'the clock') if now > 0 else (self.last_sample_ns, 'the newest sample')
+        newest = self.assembler.last_sample_ns
+        if clock_went_back(now, newest, stamp):
+            self.get_logger().warn(f'the clock went back to {now * 1e-9:.3f} s, before the newest sample '
+                                   f'{newest * 1e-9:.3f} s: following the new time, a new chain of samples')
+            self._take(self.assembler.new_timeline())
+            newest = None
+        reference, what = (now, 'the clock') if now > 0 else (newest, 'the newest sample')
         if reference is not None and stamp > reference + MAX_STAMP_AHEAD * 1e9:
             return f'stamp {stamp * 1e-9:.3f} s is more than {MAX_STAMP_AHEAD} s ahead of {what}'
-        if self.last_sample_ns is not None and stamp < self.last_sample_ns:
-            return f'stamp {stamp * 1e-9:.3f} s goes backwards (newest sample {self.last_sample_ns * 1e-9:.3f} s)'
+        if newest is not None and stamp < newest:
+            return f'stamp {stamp * 1e-9:.3f} s goes backwards (newest sample {newest * 1e-9:.3f} s)'
         return None
 
     def _on_range(self, index: int, msg: Range) -> None:
@@ -286,53 +336,33 @@ class SensorManifold(Node):
             self._reject(f'{SENSOR_NAMES[index]} reading', problem)
             return
         self.sensor_limits[index] = (float(msg.min_range), float(msg.max_range))
-        values = self.pending.setdefault(stamp, [math.nan] * 5 + [0])
-        values[index] = msg.range
-        # which sensors of the step came (a bit each), not how many messages: while the subscriptions match one by
-        # one at start-up, a re-sent step brings some sensors twice, and counting them made a step of 5 messages
-        # with a sensor missing (NaN), so the exploration took another first command than in an idle run
-        values[5] |= 1 << index
-        if len(self.pending) > MAX_PENDING_STEPS:
-            del self.pending[min(self.pending)]
-        if values[5] == ALL_SENSORS:
-            del self.pending[stamp]
-            for old in [s for s in self.pending if s < stamp]:   # incomplete older steps never complete
-                del self.pending[old]
-            self._publish_model()
-            if self.last_sample_ns is not None and stamp <= self.last_sample_ns:
-                # A re-published step: already a sample. The simulator re-sends a step only after a period without a
-                # command, and the command that produced a step left before the step did: a sample still waiting
-                # for its command gets none (a reset). Otherwise its state is sent again.
-                if self.waiting is not None and stamp == self.last_sample_ns:
-                    reading, waiting_stamp, _ = self.waiting
-                    self.waiting = None
-                    self._on_sample(reading, waiting_stamp)
-                elif self.waiting is None and self.last_state is not None:
-                    self.state_pub.publish(self.last_state)
-                return
-            self.last_sample_ns = stamp
-            reading = np.asarray(values[:5], dtype=float)
-            if self.waiting is not None:             # the earlier sample's command will not come any more
-                waiting, self.waiting = self.waiting, None
-                self._on_sample(*waiting[:2])
-            if self.readings and not self.commands_since_sample:
-                self.waiting = (reading, msg.header.stamp, self.steady.now().nanoseconds)
-            else:
-                self._on_sample(reading, msg.header.stamp)
+        self._publish_model()
+        was_waiting = self.assembler.waiting
+        self._take(self.assembler.reading(index, stamp, msg.range))
+        if self.assembler.waiting is not None and self.assembler.waiting is not was_waiting:
+            self.waiting_since = self.steady.now().nanoseconds
 
-    def _on_sample(self, reading: np.ndarray, stamp) -> None:
+    def _take(self, events) -> None:
+        for event in events:
+            if isinstance(event, Resent):
+                if self.last_state is not None:      # a late joiner gets the step's state again
+                    self.state_pub.publish(self.last_state)
+            else:
+                self._on_sample(event)
+
+    def _on_sample(self, sample: Sample) -> None:
         # One command between two samples is the lockstep contract; anything else (reset, lost command) breaks
         # the chain of consecutive samples.
-        follows = len(self.commands_since_sample) == 1
+        step = sample.command if sample.command is not None else np.zeros(2)
+        follows = sample.follows and bool(self.readings)
         if self.readings:
-            step = self.commands_since_sample[-1] if self.commands_since_sample else np.zeros(2)
             self.commands.append(step)
             self.continuous.append(follows)
-        if not follows and self.tracker is not None:
+        stamp = Time(sec=sample.stamp_ns // 1_000_000_000, nanosec=sample.stamp_ns % 1_000_000_000)
+        self._keep_sample(sample.stamp_ns, sample.reading, step, follows)
+        if not sample.follows and self.tracker is not None:
             self.tracker.reset()
-        command = self.commands_since_sample[-1] if self.commands_since_sample else None
-        self.commands_since_sample = []
-        self.readings.append(reading)
+        self.readings.append(sample.reading)
         n = len(self.readings)
         more = n - self.fitted_samples
         if self.fitting is None and ((self.model is None and n >= self.learn_after and more > 0)
@@ -340,7 +370,7 @@ class SensorManifold(Node):
                                      or (self.model is not None and not self.model.ready
                                          and more >= max(self.learn_after // 4, 1))):
             self._start_fit()
-        self._publish(reading, command, stamp)
+        self._publish(sample.reading, sample.command, stamp)
 
     # --- output -------------------------------------------------------------------------------------------------
     def _publish(self, reading: np.ndarray, command: Optional[np.ndarray], stamp) -> None:

@@ -17,7 +17,7 @@ from typing import Optional
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from mm_common.node_utils import declare, reject_non_finite, run_node
+from mm_common.node_utils import clock_went_back, declare, reject_non_finite, run_node
 from mm_common.qos import LOOP_QOS  # RELIABLE, deep history: see mm_common/qos.py
 from mm_msgs.msg import ControllerStatus, ManifoldState, SensorGoal
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
@@ -210,6 +210,10 @@ class SwitchingControllerNode(Node):
             return f'active_space {msg.active_space} without {needs}'
         now = self.get_clock().now().nanoseconds
         stamp = _ns(msg.header.stamp)
+        if clock_went_back(now, self.newest_ns if self.newest_ns >= 0 else None, stamp):
+            self.get_logger().warn(f'the clock went back to {now * 1e-9:.3f} s, before the newest state '
+                                   f'{self.newest_ns * 1e-9:.3f} s: following the new time')
+            self.newest_ns = self.last_answered = -1
         if now > 0 and stamp > now + MAX_STAMP_AHEAD * 1e9:
             return f'stamp {stamp * 1e-9:.3f} s is more than {MAX_STAMP_AHEAD} s ahead of the clock ({now * 1e-9:.3f} s)'
         if stamp < self.newest_ns:
