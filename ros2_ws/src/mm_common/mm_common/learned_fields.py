@@ -24,25 +24,45 @@ def _monomials(degree: int, dim: int) -> Tuple[Tuple[int, ...], ...]:
     return tuple(combo for d in range(degree + 1) for combo in combinations_with_replacement(range(dim), d))
 
 
+@lru_cache(maxsize=None)
+def _gradient_terms(degree: int, dim: int) -> Tuple[Tuple[int, int, int, Tuple[int, ...]], ...]:
+    """(feature, variable, power, the other variables of the monomial) of each non-zero derivative."""
+    terms = []
+    for f, combo in enumerate(_monomials(degree, dim)):
+        for k in sorted(set(combo)):
+            rest = list(combo)
+            rest.remove(k)
+            terms.append((f, k, combo.count(k), tuple(rest)))
+    return tuple(terms)
+
+
+def _product(Z: np.ndarray, variables: Tuple[int, ...]) -> np.ndarray:
+    """The product of the columns `variables` of Z, left to right (as np.prod multiplies them; ones if none)."""
+    if not variables:
+        return np.ones(len(Z))
+    out = Z[:, variables[0]]
+    for k in variables[1:]:
+        out = out * Z[:, k]
+    return out
+
+
 def polynomial_features(Y: np.ndarray, degree: int, center: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """1, y_i, y_i y_j, ... of the standardised y, up to `degree`."""
+    """1, y_i, y_i y_j, ... of the standardised y, up to `degree`. (Per-column products, not np.prod over a gathered
+    array: this runs once per Euler step of every re-entry fit, where numpy's per-call overhead dominated.)"""
     Z = (np.atleast_2d(Y) - center) / scale
-    cols = [np.ones(len(Z))]
-    for combo in _monomials(degree, Z.shape[1])[1:]:
-        cols.append(np.prod(Z[:, combo], axis=1))
-    return np.stack(cols, axis=1)
+    monomials = _monomials(degree, Z.shape[1])
+    P = np.empty((len(Z), len(monomials)))
+    for f, combo in enumerate(monomials):
+        P[:, f] = _product(Z, combo)
+    return P
 
 
 def polynomial_feature_gradients(Y: np.ndarray, degree: int, center: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """(n, features, dim) derivatives of polynomial_features with respect to y (for analytic sensitivities)."""
     Z = (np.atleast_2d(Y) - center) / scale
-    monomials = _monomials(degree, Z.shape[1])
-    G = np.zeros((len(Z), len(monomials), Z.shape[1]))
-    for f, combo in enumerate(monomials):
-        for k in set(combo):
-            rest = list(combo)
-            rest.remove(k)
-            G[:, f, k] = combo.count(k) * np.prod(Z[:, rest], axis=1) / scale[k]
+    G = np.zeros((len(Z), len(_monomials(degree, Z.shape[1])), Z.shape[1]))
+    for f, k, power, rest in _gradient_terms(degree, Z.shape[1]):
+        G[:, f, k] = power * _product(Z, rest) / scale[k]
     return G
 
 

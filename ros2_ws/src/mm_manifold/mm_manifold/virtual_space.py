@@ -49,9 +49,11 @@ class ExtrapolatedField:
         gap = np.maximum(self.box[0] - Y, 0.0) + np.maximum(Y - self.box[1], 0.0)
         return np.clip(np.linalg.norm(gap, axis=1) / self.ramp, 0.0, 1.0)
 
-    def jacobian(self, Y: np.ndarray) -> np.ndarray:
+    def jacobian(self, Y: np.ndarray, P: Optional[np.ndarray] = None) -> np.ndarray:
+        """(n, dy, du) Jacobians at the rows of Y; `P`: their polynomial features when already computed."""
         Y = np.atleast_2d(Y)
-        P = polynomial_features(Y, self.base.degree, self.base.center_, self.base.scale_)
+        if P is None:
+            P = polynomial_features(Y, self.base.degree, self.base.center_, self.base.scale_)
         return (np.einsum('nf,fij->nij', P, self.base.theta_)
                 + self.outside_weight(Y)[:, None, None] * np.einsum('nf,fij->nij', P, self.correction))
 
@@ -93,11 +95,12 @@ def reentry_sensitivity(field: ExtrapolatedField, starts: np.ndarray, commands: 
     for t in range(T):
         u = commands[:, t]
         P = polynomial_features(y, base.degree, base.center_, base.scale_)
-        J = field.jacobian(y)                    # as integrate_batch evaluates it, so the end points agree exactly
+        J = field.jacobian(y, P)                 # as integrate_batch evaluates it, so the end points agree exactly
         G = polynomial_feature_gradients(y, base.degree, base.center_, base.scale_)
         A = np.einsum('nfk,fij,nj->nik', G, weights, u)
+        PU = P[:, :, None] * u[:, None, :]
         for i in range(dy):
-            B[:, i, :, i, :] = P[:, :, None] * u[:, None, :]
+            B[:, i, :, i, :] = PU
         S = S + dt * (A @ S + B.reshape(E, dy, -1))
         y = y + np.einsum('nij,nj->ni', J, u) * dt
         if bounds is not None:
