@@ -97,7 +97,9 @@ def reentry_sensitivity(field: ExtrapolatedField, starts: np.ndarray, commands: 
         P = polynomial_features(y, base.degree, base.center_, base.scale_)
         J = field.jacobian(y, P)                 # as integrate_batch evaluates it, so the end points agree exactly
         G = polynomial_feature_gradients(y, base.degree, base.center_, base.scale_)
-        A = np.einsum('nfk,fij,nj->nik', G, weights, u)
+        # d(J u)/dy in two contractions: einsum over three operands at once loops over every index combination in C
+        # and took half of the fit
+        A = np.einsum('nfk,nfi->nik', G, np.einsum('fij,nj->nfi', weights, u))
         PU = P[:, :, None] * u[:, None, :]
         for i in range(dy):
             B[:, i, :, i, :] = PU
