@@ -2,16 +2,17 @@
 
     ./mm run mm_manifold sensor_manifold --ros-args -p use_sim_time:=true -p model_path:=results/wall_model.npz
 
-Inputs (what the robot senses and commands, nothing else): the five `wheeled/range/*` readings, grouped by stamp
-into one sample per simulator step, and its own `wheeled/wheel_velocity_controller/commands` (the rule below lives
-in mm_manifold.sample_assembly, which a bag replay uses too). The command that moved the robot to a sample travels on
-another topic and may arrive after the sample's readings, so a sample with no command yet waits for it - for as long as it takes, never decided by a wall-clock timeout (the learned data must not depend on
-machine load). It stops waiting when the simulator shows that no command will come: it re-publishes the sample's step
-(it does so only after a period without a command, e.g. after a reset) or publishes a newer one. A wait longer than
-`stall_warning` wall seconds is reported (throttled), not resolved. A sample that does not follow exactly one command
-(a reset, a lost command) breaks the chain of consecutive samples: it is not used as a Jacobian pair and the state
-tracker starts afresh from it. A step the simulator re-publishes (it does so until the loop starts) is no new sample:
-its state is sent again so a controller that joined late can start the loop.
+Inputs (what the robot senses and commands, nothing else): the five `wheeled/range/*` readings, grouped by stamp into
+one sample per simulator step, and its own `wheeled/wheel_velocity_controller/commands` (the rule below lives in
+mm_manifold.sample_assembly, which a bag replay uses too). The command that moved the robot to a sample travels on
+another topic and may arrive after the sample's readings, so a sample with no command yet waits for it - for as long
+as it takes, never decided by a wall-clock timeout (the learned data must not depend on machine load). It stops
+waiting when the simulator shows that no command will come: it re-publishes the sample's step (it does so only after a
+period without a command, e.g. after a reset) or publishes a newer one. A wait longer than `stall_warning` wall
+seconds is reported (throttled), not resolved. A sample that does not follow exactly one command (a reset, a lost
+command) breaks the chain of consecutive samples: it is not used as a Jacobian pair and the state tracker starts
+afresh from it. A step the simulator re-publishes (it does so until the loop starts) is no new sample: its state is
+sent again so a controller that joined late can start the loop.
 
 After `learn_after` samples the SensorManifoldModel (dimension, elastic grid, Jacobians, virtual sensor space) is
 fitted in a background thread (on copies: the live model is never changed, a finished fit is swapped in on the
@@ -22,10 +23,10 @@ prediction of the newest samples) is logged and dropped. The model is published 
 message on the latched `wheeled/manifold/model` topic (the controller needs no file and may run on another host); with
 `model_path` set it is also saved atomically there (np.savez + JSON) and loaded at start (every field checked; a bad
 file means learning anew), so a restart does not relearn. With `samples_path` set every sample is appended to that
-file as it is taken (mm_manifold.sample_log) and the file is loaded at start, so a crashed learner restarts with all it
-had explored (the first sample after the restart starts a new chain). Every sample gives one `wheeled/manifold/state` (and a
-Jacobian estimate). Every input is validated (Range: REP 117, within its limits, sane stamps; commands: two finite
-values) and a bad one is dropped with a throttled log line saying why.
+file as it is taken (mm_manifold.sample_log) and the file is loaded at start, so a crashed learner restarts with all
+it had explored (the first sample after the restart starts a new chain). Every sample gives one
+`wheeled/manifold/state` (and a Jacobian estimate). Every input is validated (Range: REP 117, within its limits, sane
+stamps; commands: two finite values) and a bad one is dropped with a throttled log line saying why.
 """
 from __future__ import annotations
 
