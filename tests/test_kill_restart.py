@@ -45,22 +45,38 @@ def _kill_and_restart(wall: WallGraph, executable: str, clock: list) -> float:
     if executable == 'wheeled_sim':
         # whatever it published before it died: this process may be seconds behind on a loaded machine, so wait
         # until /clock has been quiet for a second (a stale step made the restart go back in time)
-        deadline, heard, quiet_since = time.monotonic() + 20.0, len(clock), time.monotonic()
-        while time.monotonic() - quiet_since < 1.0 and time.monotonic() < deadline:
-            wall.ros.spin_for(0.1)
-            if len(clock) != heard:
-                heard, quiet_since = len(clock), time.monotonic()
+        _until_quiet(wall, lambda: clock[-1] if clock else None)
         step = max(_clock_step(clock), _step(wall))
         parameters.update(initial_step=step + 1, initial_pose=list(wall.last_pose))
     old.log_path.rename(old.log_path.with_name(f'{executable}.killed.log'))
-    samples = wall.samples
+    if executable == 'sensor_manifold':
+        # the dead learner's last state (this process may still be receiving them): wait until none came for 1 s
+        _until_quiet(wall, lambda: len(wall.recent_states) and wall.recent_states[-1])
+        last = wall.recent_states[-1]
     wall.nodes[index] = wall.graph.start(old.package, old.executable, parameters)
     wall.spin_until(lambda: _step(wall) >= step + RESUMED_STEPS, RECOVERY_TIMEOUT,
                     f'the loop to run again after {executable} was killed at step {step}')
     if executable == 'sensor_manifold':
-        # its samples were on disk (samples_path): the restarted learner carries on with all that was explored
-        assert wall.samples > samples, f'{wall.samples} samples after the restart, {samples} before the kill'
+        # Its samples were on disk (samples_path): the restarted learner counts on from where the dead one stopped;
+        # one that had lost them would count only the steps since its restart.
+        def newer():
+            return next((m for m in wall.recent_states if _ns(m.header.stamp) > _ns(last.header.stamp)), None)
+        wall.spin_until(lambda: newer() is not None, RECOVERY_TIMEOUT, 'a state of the restarted learner')
+        assert newer().samples > last.samples, f'{newer().samples} samples after the restart, {last.samples} before'
     return time.monotonic() - killed_at
+
+
+def _until_quiet(wall: WallGraph, newest, quiet: float = 1.0, timeout: float = 20.0) -> None:
+    """Spin until `newest()` has not changed for `quiet` seconds (at most `timeout`)."""
+    deadline, seen, since = time.monotonic() + timeout, newest(), time.monotonic()
+    while time.monotonic() - since < quiet and time.monotonic() < deadline:
+        wall.ros.spin_for(0.1)
+        if newest() is not seen:
+            seen, since = newest(), time.monotonic()
+
+
+def _ns(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
 def test_killed_nodes_rejoin_and_the_paper_task_completes(tmp_path):
