@@ -37,6 +37,22 @@ class RosHarness:
             self.executor.spin_once(timeout_sec=0.01)
         return predicate()
 
+    def sim_clock(self, publisher_node: Node, listener: Node, timeout: float = 10.0) -> Callable[[int], None]:
+        """A setter of simulated time for a node under test with use_sim_time: `set(sec)` publishes /clock from
+        `publisher_node` and returns once `listener`'s clock reads it."""
+        from rosgraph_msgs.msg import Clock
+        pub = publisher_node.create_publisher(Clock, '/clock', 10)
+        if not self.spin_until(lambda: pub.get_subscription_count() > 0, timeout):
+            raise TimeoutError('/clock has no subscriber')
+
+        def set_time(sec: int) -> None:
+            msg = Clock()
+            msg.clock.sec = sec
+            pub.publish(msg)
+            if not self.spin_until(lambda: listener.get_clock().now().nanoseconds == sec * 10 ** 9, timeout):
+                raise TimeoutError(f'{listener.get_name()} never read /clock {sec} s')
+        return set_time
+
     def spin_for(self, seconds: float) -> None:
         """Process callbacks for a while: for asserting that something does NOT happen."""
         deadline = time.monotonic() + seconds
