@@ -10,6 +10,7 @@ import pytest
 from mm_common.ros_harness import RosHarness
 from mm_msgs.msg import ControllerStatus, ManifoldState, SensorGoal
 from mm_msgs.srv import SetSensorGoal
+from rclpy.exceptions import InvalidParameterValueException
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
@@ -329,7 +330,8 @@ def test_parameter_updates_are_validated():
         assert not node.set_parameters([Parameter('max_wheel_speed', value=100.0)])[0].successful   # range
         assert not node.set_parameters([Parameter('max_reach_steps', value=0)])[0].successful
         # Fixed at start-up (they would have no effect later): read-only.
-        for name, value in (('dt', 0.1), ('exploration_steps', 5), ('random_seed', 3), ('max_exploration_steps', 20)):
+        for name, value in (('dt', 0.1), ('exploration_steps', 5), ('random_seed', 3), ('max_exploration_steps', 20),
+                            ('exploration_approach_probability', 0.5), ('exploration_excursion_share', 0.2)):
             assert not node.set_parameters([Parameter(name, value=value)])[0].successful, name
         assert not node.set_parameters([Parameter('max_exploration_steps', value=-1)])[0].successful
         assert not node.set_parameters([Parameter('max_exploration_steps', value=math.nan)])[0].successful
@@ -340,6 +342,17 @@ def test_parameter_updates_are_validated():
         assert node.agent.max_reach_steps == 200
     finally:
         rig.ros.close()
+
+
+def test_the_paper_s_undirected_exploration_is_a_parameter_choice():
+    rig = Rig({'exploration_steps': 0, 'exploration_approach_probability': 0.0, 'exploration_excursion_share': 0.0})
+    try:
+        explorer = rig.node.agent.explorer
+        assert explorer.approach_probability == 0.0 and explorer.excursion_share == 0.0
+    finally:
+        rig.ros.close()
+    with pytest.raises(InvalidParameterValueException):          # out of range: refused at start-up
+        Rig({'exploration_excursion_share': 1.5})
 
 
 def test_node_and_offline_runner_command_alike(learned):

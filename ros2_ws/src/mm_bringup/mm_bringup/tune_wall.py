@@ -12,6 +12,9 @@ exploration seeds 1000+ and task seeds 5000+, never these. Layouts and robots ar
 of mm_sim/layouts, bench.wall_task.ROBOTS).
 
     ./mm python -m mm_bringup.tune_wall --seeds 100 101 102 103 104 --out results/tune_wall.json
+
+Rows are printed as they come (one JSON object per line); `--rows` summarizes such output of several processes (for
+instance one per layout) into one file.
 """
 from __future__ import annotations
 
@@ -19,6 +22,7 @@ import argparse
 import copy
 import json
 import math
+import sys
 import time
 from pathlib import Path
 from typing import Dict, List, Optional
@@ -45,7 +49,7 @@ def evaluate(robot: WheeledRobot, dt: float, model, tasks: int, tolerance: float
     for _ in range(tasks):
         start, goal = random_task(rng, robot)
         reading = sensor2_goal_reading(robot, goal)
-        if model is None or not model.virtual_.overlap_sensor2_.size:
+        if model is None or model.field2_ is None or not model.virtual_.overlap_sensor2_.size:
             outcomes.append(False)
             continue
         try:
@@ -77,9 +81,26 @@ def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, mod
     ready = bool(model is not None and model.ready)
     return dict(layout=layout, robot=robot_name, seed=seed, exploration_steps=steps, samples=samples, ready=ready,
                 heldout_sensor2_error=getattr(model, 'heldout_sensor2_error_', math.inf),
-                heldout_limit=getattr(model, 'heldout_limit_', 0.0), tolerance=tolerance,
+                heldout_limit=getattr(model, 'heldout_limit_', 0.0),
+                heldout_reentry_error=getattr(model, 'heldout_reentry_error_', math.nan),
+                excursions=getattr(model, 'n_excursions_', 0),
+                sensor2_excursions=sum(1 for e in model.excursions_ if e.sensor2) if model is not None else 0,
+                overlap_samples=len(model.virtual_.overlap_sensor2_) if model is not None else 0, tolerance=tolerance,
                 success=rate if ready else 0.0, success_if_used=rate, median_path_ratio=ratio, median_error=err,
                 detail=learned.detail, seconds=round(time.monotonic() - t0, 1))
+
+
+def summarize(rows: List[Dict]) -> List[Dict]:
+    """Per explorer setting, over every cell it ran (layouts x robots x seeds): ready models, mean success (a
+    model that is not ready counts 0) and seeds at >= 0.95; best first. The choice rule is the first entry."""
+    by_setting: Dict[str, List[Dict]] = {}
+    for row in rows:
+        by_setting.setdefault(json.dumps(row['explorer'], sort_keys=True), []).append(row)
+    summary = [dict(explorer=json.loads(key), cells=len(cells), ready=sum(r['ready'] for r in cells),
+                    mean_success=round(float(np.mean([r['success'] for r in cells])), 3),
+                    cells_at_095=sum(r['success'] >= 0.95 for r in cells))
+               for key, cells in by_setting.items()]
+    return sorted(summary, key=lambda s: -s['mean_success'])
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -93,8 +114,15 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument('--tolerance', type=float, default=0.005)
     parser.add_argument('--explorer', nargs='+', type=json.loads, default=[{}],
                         help='RandomExplorer hyperparameter sets to compare, each a JSON object')
+    parser.add_argument('--rows', nargs='+', type=Path, default=None,
+                        help='summarize rows printed by earlier runs (one JSON object per line) instead of running')
+    parser.add_argument('--note', default='', help='what the output file should say about how it was made')
     parser.add_argument('--out', type=Path, default=None)
     args = parser.parse_args(argv)
+    if args.rows:
+        rows = [json.loads(line) for path in args.rows for line in path.read_text().splitlines()
+                if line.startswith('{')]
+        return _write(args, rows)
     bad = [s for s in args.seeds if s not in TUNING_SEEDS]
     if bad:
         parser.error(f'seeds {bad} are not tuning seeds ({TUNING_SEEDS[0]}-{TUNING_SEEDS[-1]})')
@@ -108,8 +136,18 @@ def main(argv: Optional[List[str]] = None) -> int:
                     row['explorer'] = params
                     print(json.dumps(row), flush=True)
                     rows.append(row)
+    return _write(args, rows)
+
+
+def _write(args, rows: List[Dict]) -> int:
+    summary = summarize(rows)
+    print(json.dumps(summary, indent=1))
     if args.out:
-        args.out.write_text(json.dumps(rows, indent=1))
+        result = dict(command=' '.join(['./mm python -m mm_bringup.tune_wall'] + sys.argv[1:]), note=args.note,
+                      choice_rule='highest mean success over every cell', summary=summary, rows=rows)
+        tmp = args.out.with_suffix('.tmp')
+        tmp.write_text(json.dumps(result, indent=1))
+        tmp.replace(args.out)
     return 0
 
 

@@ -113,9 +113,11 @@ def agent_model(robot: WheeledRobot, model: SensorManifoldModel) -> WallModel:
 
 
 def explore(robot: WheeledRobot, steps: int, start=PAPER_START, random_state: int = 0,
-            agent: Optional[WallAgent] = None, dt: float = 0.05) -> ExplorationLog:
+            agent: Optional[WallAgent] = None, dt: float = 0.05,
+            explorer_params: Optional[dict] = None) -> ExplorationLog:
     """`steps` exploration commands of the WallAgent (the switching_controller node's behaviour) in closed loop."""
-    agent = agent or WallAgent(dt, exploration_steps=steps, random_state=random_state)
+    agent = agent or WallAgent(dt, exploration_steps=steps, random_state=random_state,
+                               explorer_params=explorer_params)
     pose, bumped = tuple(start), False
     R, U, P = [], [], []
     for _ in range(steps):
@@ -156,11 +158,7 @@ def learn(robot: WheeledRobot, exploration_steps: int, dt: float, random_state: 
     # the cap is the agent's own (the controller node's max_exploration_steps): it stops exploring, not the fit of
     # what was explored, and ends FAILED with the reason
     agent = WallAgent(dt, exploration_steps=exploration_steps, random_state=random_state,
-                      max_exploration_steps=max_samples)
-    for name, value in (explorer_params or {}).items():
-        if not hasattr(agent.explorer, name):
-            raise ValueError(f'RandomExplorer has no hyperparameter {name}')
-        setattr(agent.explorer, name, value)
+                      max_exploration_steps=max_samples, explorer_params=explorer_params)
     pose, bumped = tuple(start), False
     R, U = [], []
     model, r = None, None
@@ -232,7 +230,7 @@ def run_episode(robot: WheeledRobot, model: SensorManifoldModel, start, goal_rea
     tracker = StateTracker(model)
     pose, last = tuple(start), None
     ep = Episode()
-    for _ in range(max_steps):
+    for _ in range(max_steps + 1):      # the agent itself ends a reach longer than max_steps, with its reason
         r = robot.read(pose)
         space, coords, s2, _ = tracker.update(r, last)
         ep.poses.append(pose)

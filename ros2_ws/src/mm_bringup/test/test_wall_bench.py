@@ -1,10 +1,12 @@
 """The wall benchmark's plumbing: the longest blind stretch the controller reports in its status detail is read back
 by the graph harness, and cells summarise their episodes."""
+import json
 import math
 
 import numpy as np
 import pytest
 
+from mm_bringup import tune_wall
 from mm_bringup.bench.wall_task import PAPER_GOAL_POSES, bench_cells, matrix_cells, summarise
 from mm_bringup.wall_experiment import layout_robot, learn, sensor2_goal_reading
 from mm_bringup.wall_graph import GraphEpisode
@@ -60,3 +62,21 @@ def test_learning_loop_takes_the_hyperparameters_under_test():
     assert capped.samples == 300
     assert capped.fitted is not None or capped.detail.startswith('fit failed'), capped.detail
     assert capped.model is not None or 'the cap' in capped.detail or capped.detail.startswith('fit failed')
+
+
+def test_tuning_rows_of_several_runs_are_summarized_into_one_choice(tmp_path):
+    """Layouts tuned in parallel processes print rows; `--rows` merges them and ranks the explorer settings by mean
+    success over every cell, a model that is not ready counting 0."""
+    rows = [dict(explorer={}, ready=True, success=1.0), dict(explorer={}, ready=False, success=0.0),
+            dict(explorer={'excursion_share': 0.3}, ready=True, success=0.9),
+            dict(explorer={'excursion_share': 0.3}, ready=True, success=0.95)]
+    first, second = tmp_path / 'paper.jsonl', tmp_path / 'overlap.jsonl'
+    first.write_text('\n'.join(json.dumps(r) for r in rows[:3]) + '\nsetup: ready\n')
+    second.write_text(json.dumps(rows[3]) + '\n')
+    out = tmp_path / 'tune.json'
+    assert tune_wall.main(['--rows', str(first), str(second), '--note', 'test', '--out', str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result['rows'] == rows and result['note'] == 'test'
+    best, other = result['summary']
+    assert best == dict(explorer={'excursion_share': 0.3}, cells=2, ready=2, mean_success=0.925, cells_at_095=1)
+    assert other == dict(explorer={}, cells=2, ready=1, mean_success=0.5, cells_at_095=1)

@@ -11,6 +11,7 @@ sees world coordinates.
 """
 from __future__ import annotations
 
+import inspect
 import math
 import time
 from typing import Optional
@@ -28,6 +29,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Bool, Float64MultiArray
 
+from mm_planner.exploration import RandomExplorer
 from mm_planner.wall_agent import Decision, Goal, Observation, WallAgent
 from mm_planner.wall_model import WallModel
 
@@ -81,9 +83,18 @@ class SwitchingControllerNode(Node):
                                   'after which a model that is still not ready ends FAILED with the reason (0: 4 x '
                                   'exploration_steps); fixed at start-up', min_value=0, max_value=40_000_000,
                                   read_only=True)
+        explorer_defaults = inspect.signature(RandomExplorer).parameters
+        approach = declare(self, 'exploration_approach_probability', explorer_defaults['approach_probability'].default,
+                           'Share of new excursions that first drive toward the wall (0 with exploration_excursion_'
+                           'share 0: the paper\'s undirected exploration); fixed at start-up', min_value=0.0,
+                           max_value=1.0, read_only=True)
+        share = declare(self, 'exploration_excursion_share', explorer_defaults['excursion_share'].default,
+                        'Excursions start whenever they have had less than this share of the exploration steps; '
+                        'fixed at start-up', min_value=0.0, max_value=1.0, read_only=True)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.agent = WallAgent(self.dt, exploration_steps, max_wheel_speed, tolerance, max_reach_steps,
-                               random_state=seed, max_exploration_steps=max_exploration or None)
+                               random_state=seed, max_exploration_steps=max_exploration or None,
+                               explorer_params={'approach_probability': approach, 'excursion_share': share})
 
         self.bumped = False
         # The bumper reading of a step travels on its own topic and may arrive after the state: in lockstep the

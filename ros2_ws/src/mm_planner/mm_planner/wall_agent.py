@@ -13,6 +13,7 @@ coordinates: an observation holds the learner's state of one step, the raw readi
 """
 from __future__ import annotations
 
+import inspect
 import math
 from dataclasses import dataclass, field
 from typing import Any, List, Optional, Tuple
@@ -77,11 +78,13 @@ class Decision:
 class WallAgent:
     """Hyperparameters: dt [s] of a step, exploration_steps, max_wheel_speed [rad/s], tolerance [m] (when the goal
     gives none), max_reach_steps, random_state of the exploration, max_exploration_steps (the cap: a model still not
-    ready after this many exploration steps ends FAILED with its reason; None: 4 x exploration_steps, at least 4)."""
+    ready after this many exploration steps ends FAILED with its reason; None: 4 x exploration_steps, at least 4),
+    explorer_params (RandomExplorer hyperparameters that differ from its defaults; the paper's undirected exploration
+    is {'approach_probability': 0, 'excursion_share': 0})."""
 
     def __init__(self, dt: float, exploration_steps: int = 10000, max_wheel_speed: float = 6.0,
                  tolerance: float = 0.01, max_reach_steps: int = 1500, random_state: Optional[int] = 0,
-                 max_exploration_steps: Optional[int] = None):
+                 max_exploration_steps: Optional[int] = None, explorer_params: Optional[dict] = None):
         self.dt = dt
         self.exploration_steps = exploration_steps
         self.max_exploration_steps = (4 * max(exploration_steps, 1) if max_exploration_steps is None
@@ -89,7 +92,11 @@ class WallAgent:
         self.max_wheel_speed = max_wheel_speed
         self.tolerance = tolerance
         self.max_reach_steps = max_reach_steps
-        self.explorer = RandomExplorer(random_state=random_state)
+        self.explorer_params = dict(explorer_params or {})
+        unknown = sorted(set(self.explorer_params) - set(inspect.signature(RandomExplorer).parameters))
+        if unknown:
+            raise ValueError(f'RandomExplorer has no hyperparameter {", ".join(unknown)}')
+        self.explorer = RandomExplorer(**{**self.explorer_params, 'random_state': random_state})
         self.controller: Optional[SwitchingController] = None
         self.model: Optional[WallModel] = None
         self.goal: Optional[Goal] = None
