@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mm_bringup import tune_wall
-from mm_bringup.bench.wall_task import PAPER_GOAL_POSES, bench_cells, matrix_cells, summarise
+from mm_bringup.bench.wall_task import PAPER_GOAL_POSES, bench_cells, graph_seeds, matrix_cells, summarise
 from mm_bringup.wall_experiment import layout_robot, learn, sensor2_goal_reading
 from mm_bringup.wall_graph import GraphEpisode
 from mm_planner.switching_controller import SwitchingController
@@ -29,6 +29,9 @@ def test_cells_and_summaries():
     cells = bench_cells(quick=False)
     assert len(set(cells)) == len(cells) and set(cells) <= set(full)
     assert sum(c[:2] == ('paper', 'default') and not c[4] for c in cells) == 10       # 5 seeds x 2 budgets
+    # issue 11's target is through the graph on five seeds: the headline seed keeps the budget's own key
+    assert graph_seeds(3000, (1000, 1001, 1002)) == [('3000', 1000), ('3000/1001', 1001), ('3000/1002', 1002)]
+    assert graph_seeds(10000) == [('10000', 1001)]
     episodes = [{'success': True, 'final_error': 0.004, 'path_ratio': 1.2, 'longest_blind_steps': 30,
                  'longest_blind_ratio': 1.5, 'detail': ''},
                 {'success': False, 'final_error': math.inf, 'path_ratio': 3.0, 'longest_blind_steps': 90,
