@@ -191,3 +191,35 @@ def test_agent_makes_up_for_a_learner_restart_once():
         held += 1
     assert decision.phase_name == 'LEARNING', decision.detail
     assert held == 5 and agent.explored == 8               # 3 lost steps made up for once
+
+
+def test_agent_takes_a_verdict_that_came_before_its_last_exploration_step(model):
+    """The learner fits once it holds `exploration_steps` samples: the reading before the first command counts, so
+    that is one step before the agent ends its exploration. Normally the fit takes longer than a step; when the last
+    step is held up (a simulator killed and restarted), the not-ready model came while the agent was still exploring
+    and was set aside, the agent then waited in LEARNING for another model and the learner for more samples: the
+    kill-and-restart graph stalled for good. The agent now acts on that model when its exploration ends, as it would
+    had it come after."""
+    strict = copy.copy(model)
+    strict.heldout_limit_ = model.heldout_sensor2_error_ / 2
+    far = np.array([0.6, 0.5, 0.6, np.inf, np.inf])
+    outcomes = []
+    for early in (True, False):
+        view = WallModel.from_msg(model_message(WheeledRobot(), strict))
+        view.samples = 8                               # fitted on the 8 readings of 7 commands and the first one
+        agent = WallAgent(DT, exploration_steps=8, random_state=0)
+        commands = [agent.step(Observation(state=True, readings=far, learner_samples=k + 1)).command
+                    for k in range(7)]
+        if early:
+            assert agent.step(Observation(model=view)).phase_name == 'EXPLORING'
+        commands.append(agent.step(Observation(state=True, readings=far, learner_samples=8)).command)
+        decision = agent.step(Observation(state=True, readings=far, learner_samples=9))
+        if not early:
+            assert decision.command is None and decision.phase_name == 'LEARNING'
+            decision = agent.step(Observation(model=view))
+        assert decision.phase_name == 'EXPLORING' and 'exploring 2 more' in decision.detail, decision.detail
+        commands.append(decision.command)
+        outcomes.append((agent.exploration_budget, np.array(commands)))
+    (budget_early, early_commands), (budget_late, late_commands) = outcomes
+    assert budget_early == budget_late == 10
+    np.testing.assert_array_equal(early_commands, late_commands)

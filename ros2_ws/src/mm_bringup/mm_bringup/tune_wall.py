@@ -92,7 +92,7 @@ def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, mod
 
 def summarize(rows: List[Dict]) -> List[Dict]:
     """Per explorer setting, over every cell it ran (layouts x robots x seeds): ready models, mean success (a
-    model that is not ready counts 0) and seeds at >= 0.95; best first. The choice rule is the first entry."""
+    model that is not ready counts 0) and cells at >= 0.95; best first: the choice rule takes the first."""
     by_setting: Dict[str, List[Dict]] = {}
     for row in rows:
         by_setting.setdefault(json.dumps(row['explorer'], sort_keys=True), []).append(row)

@@ -163,6 +163,10 @@ class WallAgent:
                             f'{model.heldout_limit:.4f} m)')
             self._start_goal()
 
+    def _answers_exploration(self, model: Optional[WallModel]) -> bool:
+        """Whether `model` is a not-ready model fitted on every sample explored so far (the learner's verdict on it)."""
+        return model is not None and not model.ready and model.samples + self.learner_lost >= self.explored
+
     def check_goal(self, goal: Goal) -> Optional[str]:
         """Why a goal cannot be taken (None if it can): a positive finite sensor-2 reading that the sensors can show."""
         reading = np.asarray(goal.reading, dtype=float)
@@ -227,7 +231,13 @@ class WallAgent:
                                                                   f'{expected} samples: exploring {missing} more')
             if self.explored >= self.exploration_budget:
                 self._set_phase(ControllerStatus.PHASE_LEARNING, f'{self.explored} exploration steps done')
-            else:
+                if self._answers_exploration(self.model):
+                    # The learner's answer came before the last step did (the learner fits once it holds as many
+                    # samples as steps explored, the reading before the first command included, while the last
+                    # step can be held up, e.g. by a restarting simulator); it fits again only after more samples,
+                    # so waiting for another model would stall the loop for good.
+                    self._take_model(self.model)
+            if self.phase == ControllerStatus.PHASE_EXPLORING:
                 command = self.explorer.command(state.readings, state.bumped)
                 self.explored += 1
         elif self.phase in REACHING.values():
