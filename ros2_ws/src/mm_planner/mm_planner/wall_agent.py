@@ -107,6 +107,7 @@ class WallAgent:
         self.exploration_budget = exploration_steps     # grows when the learned model is not ready
         self.learner_lost = 0                           # samples the learner lost (restarts) and were made up for
         self.pending: Optional[Observation] = None       # the newest state not answered with a command yet
+        self.set_aside: Optional[WallModel] = None      # a not-ready model that came while exploring
         self.reach_steps = 0
         self.detail = 'started'
         self._log: List[str] = []
@@ -145,6 +146,9 @@ class WallAgent:
     def _take_model(self, model: WallModel) -> None:
         self.model = model
         if not model.ready:
+            # Exploring, a model that is not ready changes nothing yet; kept, it is acted on when the exploration
+            # ends if it was fitted on all of it (see _answer).
+            self.set_aside = model if self.phase == ControllerStatus.PHASE_EXPLORING else None
             if self.phase == ControllerStatus.PHASE_LEARNING:
                 extra = min(max(self.exploration_steps // 4, 1), self.max_exploration_steps - self.explored)
                 if extra <= 0:
@@ -162,10 +166,6 @@ class WallAgent:
                             f'model ready (held-out sensor-2 error {model.heldout_sensor2_error:.4f} m within '
                             f'{model.heldout_limit:.4f} m)')
             self._start_goal()
-
-    def _answers_exploration(self, model: Optional[WallModel]) -> bool:
-        """Whether `model` is a not-ready model fitted on every sample explored so far (the learner's verdict on it)."""
-        return model is not None and not model.ready and model.samples + self.learner_lost >= self.explored
 
     def check_goal(self, goal: Goal) -> Optional[str]:
         """Why a goal cannot be taken (None if it can): a positive finite sensor-2 reading that the sensors can show."""
@@ -231,12 +231,13 @@ class WallAgent:
                                                                   f'{expected} samples: exploring {missing} more')
             if self.explored >= self.exploration_budget:
                 self._set_phase(ControllerStatus.PHASE_LEARNING, f'{self.explored} exploration steps done')
-                if self._answers_exploration(self.model):
+                early, self.set_aside = self.set_aside, None
+                if early is not None and early.samples + self.learner_lost >= self.explored:
                     # The learner's answer came before the last step did (the learner fits once it holds as many
                     # samples as steps explored, the reading before the first command included, while the last
                     # step can be held up, e.g. by a restarting simulator); it fits again only after more samples,
                     # so waiting for another model would stall the loop for good.
-                    self._take_model(self.model)
+                    self._take_model(early)
             if self.phase == ControllerStatus.PHASE_EXPLORING:
                 command = self.explorer.command(state.readings, state.bumped)
                 self.explored += 1
