@@ -19,6 +19,7 @@ from mm_manifold.sensor_manifold import (SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIR
                                          StateTracker, find_excursions, group_in_range, refit_problem)
 from mm_manifold.virtual_space import (Excursion, ExtrapolatedField, VirtualSensorSpace, integrate_batch,
                                        reentry_sensitivity)
+from mm_planner.exploration import UNDIRECTED
 from mm_sim.wheeled_model import WheeledRobot
 
 DT = 0.05
@@ -34,9 +35,6 @@ def robot():
 
 # The learner is checked on the paper's exploration (undirected random motion: more and more varied excursions); the
 # directed default's effect on the model is measured by mm_bringup.tune_wall and the benchmark (README).
-UNDIRECTED = {'approach_probability': 0.0, 'excursion_share': 0.0}
-
-
 @pytest.fixture(scope='module')
 def train_log(robot):
     return explore(robot, 10000, random_state=0, dt=DT, explorer_params=UNDIRECTED)

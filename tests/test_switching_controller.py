@@ -10,14 +10,13 @@ from mm_bringup.wall_experiment import (PAPER_GOAL_POSES, PAPER_START, explore, 
 from mm_manifold.jacobian import PolynomialJacobianField
 from mm_manifold.sensor_manifold import SensorManifoldModel, find_excursions, group_in_range
 from mm_common.wheeled_sensors import SENSOR1, SENSOR2
-from mm_planner.exploration import RandomExplorer
+from mm_planner.exploration import UNDIRECTED, RandomExplorer
 from mm_planner.switching_controller import SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SwitchingController, blind
 from mm_planner.wall_agent import WallAgent
 from mm_planner.wall_model import WallModel
 from mm_sim.wheeled_model import WheeledRobot
 
 DT = 0.05
-UNDIRECTED = {'approach_probability': 0.0, 'excursion_share': 0.0}     # the paper's random exploration
 FAR = [0.6, 0.5, 0.6, math.inf, math.inf]        # sensor 1 sees the wall comfortably, sensor 2 does not
 
 

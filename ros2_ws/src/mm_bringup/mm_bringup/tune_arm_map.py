@@ -16,8 +16,6 @@ then fewest placements with contact, then the map's TPR - FPR over the cells.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import time
 from pathlib import Path
 
@@ -33,6 +31,7 @@ def main(argv=None) -> int:
     from mm_manifold.keypoints import KeypointExtractor
     from mm_sim.arm_model import ArmModel
 
+    from mm_bringup.bench import write_json
     from mm_bringup.bench.arm_task import LEARNER_PARAMS, plan_before_moving
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--output', default='results/tune_arm_map.json')
@@ -63,14 +62,11 @@ def main(argv=None) -> int:
     best = max(rows, key=lambda r: (r['successes'], -r['contacts'],
                                     r['map_cells_any']['tpr'] - r['map_cells_any']['fpr']))
     path = Path(args.output)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix('.json.tmp')
-    tmp.write_text(json.dumps(dict(
+    write_json(path, dict(
         seeds=dict(scene=TUNE_SCENE, train=TUNE_TRAIN_SEED, placements=TUNE_PLACEMENT_SEED),
         label='whole-arm contact',
         best=dict(map_method=best['map_method'], margin_quantile=best['margin_quantile']), rows=rows,
-        seconds=time.perf_counter() - t0), indent=2) + '\n')
-    os.replace(tmp, path)
+        seconds=time.perf_counter() - t0), sort_keys=False)
     print(f'[tune_arm_map] best {best["map_method"]} margin_quantile {best["margin_quantile"]}; wrote {path}')
     return 0
 

@@ -23,12 +23,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import tempfile
 from pathlib import Path
 from typing import Optional
 
-from mm_bringup.bench import arm_reach
+from mm_bringup.bench import arm_reach, write_json
 from mm_planner.arm_agent import EXPLORATION_STEPS
 
 TUNE_SCENES = (8, 9)
@@ -107,10 +106,7 @@ def main(argv=None) -> int:
         rows = [run_one(scene, MOVES_PLACEMENT_SEED0, 10, exploration, setting['embedding'], setting['planner'])
                 for setting in MOVES_SETTINGS for scene in MOVES_SCENES]
         result.update(moves_rows=rows, best_moves=choose_safe(rows, list(MOVES_SETTINGS)))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix('.json.tmp')
-    tmp.write_text(json.dumps(result, indent=2) + '\n')
-    os.replace(tmp, path)
+    write_json(path, result, sort_keys=False)
     print(f"[tune_arm_reach] best exploration {result.get('best_exploration_steps')}, map setting "
           f"{result.get('best')}, moves setting {result.get('best_moves')}; wrote {path}")
     return 0

@@ -29,6 +29,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from mm_bringup.bench import write_json
 from mm_bringup.bench.wall_task import ROBOTS
 from mm_bringup.wall_experiment import (layout_robot, learn, oracle_path_length, random_task, run_episode,
                                         sensor2_goal_reading, success)
@@ -143,11 +144,9 @@ def _write(args, rows: List[Dict]) -> int:
     summary = summarize(rows)
     print(json.dumps(summary, indent=1))
     if args.out:
-        result = dict(command=' '.join(['./mm python -m mm_bringup.tune_wall'] + sys.argv[1:]), note=args.note,
-                      choice_rule='highest mean success over every cell', summary=summary, rows=rows)
-        tmp = args.out.with_suffix('.tmp')
-        tmp.write_text(json.dumps(result, indent=1))
-        tmp.replace(args.out)
+        write_json(args.out, dict(command=' '.join(['./mm python -m mm_bringup.tune_wall'] + sys.argv[1:]),
+                                  note=args.note, choice_rule='highest mean success over every cell',
+                                  summary=summary, rows=rows), sort_keys=False)
     return 0
 
 

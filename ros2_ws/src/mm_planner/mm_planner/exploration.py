@@ -19,8 +19,7 @@ Directed by default (issue 11): every new excursion first approaches the wall (`
 the random trigger, an excursion starts whenever excursions have had less than `excursion_share` of the steps so far.
 Undirected, sensor 2 is rarely seen when its range never overlaps sensor 1's: on the paper layout with 3 000 steps
 few models were ready (tuning figures in README). The price is fewer and less varied excursions, so the virtual
-space extrapolates worse away from the practised routes. The paper's undirected exploration is
-approach_probability 0, excursion_share 0.
+space extrapolates worse away from the practised routes. The paper's undirected exploration is UNDIRECTED.
 """
 from __future__ import annotations
 
@@ -29,6 +28,9 @@ from typing import Deque, List, Optional
 
 import numpy as np
 from mm_common.wheeled_sensors import SENSOR1, SENSOR2
+
+# The paper's exploration ("collecting samples by random motion"): RandomExplorer hyperparameters without direction.
+UNDIRECTED = {'approach_probability': 0.0, 'excursion_share': 0.0}
 
 
 

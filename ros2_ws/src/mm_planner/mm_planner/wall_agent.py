@@ -80,7 +80,7 @@ class WallAgent:
     gives none), max_reach_steps, random_state of the exploration, max_exploration_steps (the cap: a model still not
     ready after this many exploration steps ends FAILED with its reason; None: 4 x exploration_steps, at least 4),
     explorer_params (RandomExplorer hyperparameters that differ from its defaults; the paper's undirected exploration
-    is {'approach_probability': 0, 'excursion_share': 0})."""
+    is exploration.UNDIRECTED)."""
 
     def __init__(self, dt: float, exploration_steps: int = 10000, max_wheel_speed: float = 6.0,
                  tolerance: float = 0.01, max_reach_steps: int = 1500, random_state: Optional[int] = 0,

@@ -10,18 +10,12 @@ import sys
 import time
 from pathlib import Path
 
-from mm_bringup.bench import PARTS
+from mm_bringup.bench import PARTS, write_json
 
 
 def machine_info() -> dict:
     return {'cpu_count': os.cpu_count(), 'python': platform.python_version(), 'platform': platform.platform(),
             'rmw': os.environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp (default)')}
-
-
-def write_json(path: Path, data: dict) -> None:
-    tmp = path.with_suffix('.json.tmp')
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + '\n')
-    os.replace(tmp, path)
 
 
 def main(argv=None) -> int:

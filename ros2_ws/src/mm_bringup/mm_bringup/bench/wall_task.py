@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -35,6 +34,7 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 
+from mm_bringup.bench import write_json
 from mm_bringup.wall_experiment import (PAPER_GOAL_POSES, PAPER_START, layout_file, layout_robot, learn,
                                         oracle_path_length, random_task, run_episode, sensor2_goal_reading,
                                         simulator_params_file)
@@ -291,10 +291,7 @@ def main(argv=None) -> int:
     matrix = list(old.get('matrix', {}).get('cells', []))
 
     def write(complete=False):
-        data = result_json(graph_cells, matrix, args.tasks, complete, args.note)
-        tmp = path.with_suffix('.json.tmp')
-        tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + '\n')
-        os.replace(tmp, path)
+        write_json(path, result_json(graph_cells, matrix, args.tasks, complete, args.note))
     with tempfile.TemporaryDirectory(prefix='wall_task_') as tmp:
         for budget in args.graph:
             for key, seed in graph_seeds(budget, args.graph_seeds):
