@@ -72,12 +72,15 @@ def test_paper_task_crosses_the_blind_region_and_ends_parallel(run):
 
 
 def test_grid_relearnt_from_the_bag_is_the_online_grid(run):
-    """Replay: the recorded readings and commands, in the order they were recorded, go through the sample assembly
+    """Replay: the recorded readings and commands, in the order they were published, go through the sample assembly
     the node uses (mm_manifold.sample_assembly: steps by stamp, each sample's command, chain breaks where a step did
     not follow exactly one command, re-sent steps and re-sent commands included), and the model is refitted with the
-    node's hyperparameters."""
+    node's hyperparameters. Publication order (the writers' source timestamps, one host clock) is the causal order
+    of the loop; the bag's receive times come from the recorder's own readers, and under load one of its Range
+    readers once ran hundreds of steps apart from the others (a fresh-clone run of 2 December), which in receive
+    order split steps beyond the assembler's window although the node itself had taken every step."""
     assembler, samples = SampleAssembler(len(SENSOR_NAMES)), []
-    for record in iter_messages(run['bag']):
+    for record in sorted(iter_messages(run['bag']), key=lambda r: r.publish_time_ns):
         topic, data = record.topic, record.data
         if topic.startswith('/wheeled/range/'):
             msg = deserialize_message(data, Range)
