@@ -82,6 +82,7 @@ def _ns(stamp) -> int:
 def test_killed_nodes_rejoin_and_the_paper_task_completes(tmp_path):
     robot = WheeledRobot()
     with WallGraph(tmp_path, exploration_steps=EXPLORATION, dt=DT) as wall:
+        wall.watch_ground_truth()        # the steps and the simulator's restart pose come from the true odometry
         clock: list = []
         wall.node.create_subscription(Clock, '/clock', clock.append, LOOP_QOS)
         recovery = {}

@@ -42,6 +42,7 @@ def run(tmp_path_factory):
         with WallGraph(work, exploration_steps=EXPLORATION, graph=graph, recorder='recorder',
                        recorded_topics=RECORDED, model_path='') as wall:
             wall.wait_learned(timeout=900.0)
+            wall.watch_ground_truth()
             topics = wall.node.get_topic_names_and_types()
             ground_truth = {name: sorted(i.node_name for i in wall.node.get_subscriptions_info_by_topic(name))
                             for name, _ in topics if 'ground_truth' in name}

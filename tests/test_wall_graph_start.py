@@ -22,6 +22,6 @@ def test_a_loop_that_never_started_is_restarted(tmp_path, capsys):
         assert all(n.process.poll() is None for n in wall.nodes)
         stopped = [n for n in wall.graph.nodes if n not in wall.nodes]      # the first attempt's processes
         assert len(stopped) == 3 and all(n.process.poll() is not None for n in stopped)
-        step = max(stamp for stamp, _ in wall.recent_odom)
-        wall.spin_until(lambda: max(stamp for stamp, _ in wall.recent_odom) > step, 30.0, 'the loop to run on')
+        step = wall.state_stamp
+        wall.spin_until(lambda: wall.state_stamp > step, 30.0, 'the loop to run on')
     assert 'did not start' in capsys.readouterr().out

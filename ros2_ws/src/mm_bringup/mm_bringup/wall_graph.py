@@ -121,8 +121,10 @@ class WallGraph:
         self.recent_states: Deque[ManifoldState] = deque(maxlen=100)
         self.sensor1_samples: List[tuple] = []       # every in-range sensor-1 reading seen (for Fig. 7)
         node.create_subscription(ControllerStatus, 'wheeled/controller/status', self._on_status, LOOP_QOS)
-        node.create_subscription(Odometry, 'wheeled/ground_truth/odom', self._on_odom, LOOP_QOS)
         node.create_subscription(ManifoldState, 'wheeled/manifold/state', self._on_state, LOOP_QOS)
+        # Ground truth scores episodes only: taken from the first episode on (watch_ground_truth), so that during
+        # exploration this process, one of four on the loop's CPUs, does not take an odometry message every step.
+        self.odom_sub = None
         self.model_msg: Optional[SensorManifoldModel] = None
         node.create_subscription(SensorManifoldModel, 'wheeled/manifold/model',
                                  lambda msg: setattr(self, 'model_msg', msg), LATCHED_QOS)
@@ -157,8 +159,8 @@ class WallGraph:
             # A loop that never starts (endpoints that never matched) is detected here within LOOP_START_TIMEOUT
             # and the loop's nodes are started again, instead of an experiment waiting for learning for good.
             try:
-                self.spin_until(lambda: len({stamp for stamp, _ in self.recent_odom}) >= 2, LOOP_START_TIMEOUT,
-                                'the lockstep loop to start')
+                self.spin_until(lambda: len({_ns(m.header.stamp) for m in self.recent_states}) >= 2,
+                                LOOP_START_TIMEOUT, 'the lockstep loop to start')
                 break
             except TimeoutError:
                 if attempt + 1 == LOOP_START_ATTEMPTS:
@@ -168,7 +170,7 @@ class WallGraph:
                 for n in reversed(self.nodes):
                     self.graph.stop(n)
                 self.nodes.clear()
-                self.recent_odom.clear()
+                self.recent_states.clear()
 
     # --- callbacks (evaluation side) --------------------------------------------------------------------------------
     def _on_status(self, msg: ControllerStatus) -> None:
@@ -211,8 +213,17 @@ class WallGraph:
                         and self.status.phase == ControllerStatus.PHASE_WAITING_FOR_GOAL, timeout,
                         'exploration and learning')
 
+    def watch_ground_truth(self) -> None:
+        """Subscribe to the ground-truth odometry (once) and wait until the simulator's publisher is matched, so the
+        next step's pose is not missed."""
+        if self.odom_sub is None:
+            self.odom_sub = self.node.create_subscription(Odometry, 'wheeled/ground_truth/odom', self._on_odom,
+                                                          LOOP_QOS)
+        self.spin_until(lambda: self.odom_sub.get_publisher_count() > 0, 30.0, 'the ground-truth odometry')
+
     def reset(self, pose: Sequence[float]) -> int:
         """Teleport the robot; returns the stamp [ns] of the step the reset produced."""
+        self.watch_ground_truth()
         self.spin_until(lambda: self.reset_client.service_is_ready(), 30.0, 'the reset service')
         future = self.reset_client.call_async(ResetPose.Request(x=float(pose[0]), y=float(pose[1]),
                                                                 theta=float(pose[2])))

@@ -1,6 +1,7 @@
 """Graph benchmark (results/bench.json): lockstep simulator rate and latency, the full wheeled graph's rate
 (wheeled_sim + sensor_manifold + switching_controller exploring in lockstep) as a ratio of the bare lockstep rate of
-the same run, the cost of a fit per 10 000 samples and of a wall episode, recorder throughput for camera images, and,
+the same run, its start-up, the cost of a fit per 10 000 samples and of a wall episode, the arm graph's camera frames
+per second (arm_sim + image_embedding + dp_planner exploring), recorder throughput for camera images, and,
 measured in the same run for comparison, plain rclpy ping-pong and image flow without recording. The machine's load
 (load average before and after, cpu count) and the versions and commit are recorded beside the figures."""
 from __future__ import annotations
@@ -169,7 +170,9 @@ def wheeled_graph(steps: int, work: Path) -> dict:
     can map the goal (seconds per wall episode through the graph, reset included)."""
     marks = {}
     result = {'graph_steps': steps}
+    began = time.perf_counter()
     with WallGraph(work, exploration_steps=steps, model_path='') as wall:
+        result['graph_startup_s'] = time.perf_counter() - began     # three nodes started until the loop's 2nd step
         processes = {n.label: n.process.pid for n in wall.nodes}
         wall.spin_until(lambda: wall.samples >= 100, 120.0, '100 samples')
         cpu_from = {k: _cpu_seconds(pid) for k, pid in processes.items()}
@@ -182,16 +185,43 @@ def wheeled_graph(steps: int, work: Path) -> dict:
         wall.spin_until(lambda: wall.model_msg is not None, 600.0, 'the first model')
         result['graph_fit_and_model_s'] = time.perf_counter() - marks['to'][1]
         result['graph_model_ready'] = bool(wall.model_msg.ready)
-        if result['graph_model_ready']:
-            wall.wait_learned(timeout=60.0)
-            robot = WheeledRobot()
-            episode = wall.run_episode(PAPER_START, sensor2_goal_reading(robot, (0.0, 0.25, 0.0)), 0.005)
-            result.update(graph_episode_s=episode.wall_seconds, graph_episode_steps=len(episode.poses) - 1,
-                          graph_episode_reached=episode.reached)
+        # A first model that is not ready sends the robot exploring on: the episode waits for a ready one.
+        wall.wait_learned(timeout=600.0)
+        result['graph_samples_until_ready'] = wall.samples
+        robot = WheeledRobot()
+        episode = wall.run_episode(PAPER_START, sensor2_goal_reading(robot, (0.0, 0.25, 0.0)), 0.005)
+        result.update(graph_episode_s=episode.wall_seconds, graph_episode_steps=len(episode.poses) - 1,
+                      graph_episode_reached=episode.reached)
     (n0, t0), (n1, t1) = marks['from'], marks['to']
     result['graph_steps_per_s'] = (n1 - n0) / (t1 - t0)
     result['graph_cpu_ms_per_step'] = {k: (cpu_to[k] - cpu_from[k]) * 1000 / (n1 - n0) for k in cpu_from}
     return result
+
+
+def arm_graph(frames: int, work: Path) -> dict:
+    """arm_sim + image_embedding + dp_planner (three processes) exploring `frames` camera frames in lockstep, the
+    learner extracting SIFT keypoints from every 400x400 frame: frames/s from the 50th frame to the end of the
+    exploration, with the CPU each process spent per frame over that stretch; then the seconds of the fit until the
+    planner has its first map."""
+    from mm_bringup.arm_graph import ArmGraphDriver, start_arm_sim, start_learning_nodes
+    from mm_bringup.bench.arm_reach import SCENE_SEED
+    from mm_msgs.msg import ControllerStatus
+    with ProcessGraph(log_dir=work / 'logs') as graph:
+        nodes = [start_arm_sim(graph, SCENE_SEED)] + start_learning_nodes(graph, SCENE_SEED, frames)
+        driver = ArmGraphDriver('bench_arm_driver', nodes)
+        try:
+            driver.spin_until(lambda: len(driver.joints) >= 50, 120.0, '50 arm frames')
+            n0, t0 = len(driver.joints), time.perf_counter()
+            cpu_from = {n.label: _cpu_seconds(n.process.pid) for n in nodes}
+            driver.spin_until(lambda: driver.phase() == ControllerStatus.PHASE_LEARNING, 600.0, 'the exploration')
+            n1, t1 = len(driver.joints), time.perf_counter()
+            cpu_to = {n.label: _cpu_seconds(n.process.pid) for n in nodes}
+            driver.spin_until(lambda: driver.phase() == ControllerStatus.PHASE_WAITING_FOR_GOAL, 600.0, 'the fit')
+            fit_s = time.perf_counter() - t1
+        finally:
+            driver.close()
+    return {'arm_frames_per_s': (n1 - n0) / (t1 - t0), 'arm_frames': frames, 'arm_fit_and_map_s': fit_s,
+            'arm_cpu_ms_per_frame': {k: (cpu_to[k] - cpu_from[k]) * 1000 / (n1 - n0) for k in cpu_from}}
 
 
 def offline_costs(samples: int) -> dict:
@@ -239,6 +269,7 @@ def run(output_dir: Path, quick: bool) -> dict:
     result.update(lockstep_loop(steps, work / 'logs'))
     result.update(wheeled_graph(1000 if quick else 5000, work / 'wheeled'))
     result['graph_over_lockstep'] = result['graph_steps_per_s'] / result['lockstep_steps_per_s']
+    result.update(arm_graph(200 if quick else 500, work / 'arm'))
     result.update(offline_costs(2000 if quick else 10000))
     result.update(pingpong_reference(steps))
     result['lockstep_over_pingpong_latency'] = result['roundtrip_us_p50'] / result['pingpong_us_p50']
