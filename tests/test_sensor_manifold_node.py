@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mm_common.ros_harness import RosHarness
-from mm_msgs.msg import JacobianEstimate, ManifoldState
+from mm_msgs.msg import JacobianEstimate, ManifoldState, ModelVerdict
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -292,6 +292,40 @@ def test_bad_readings_are_rejected_and_the_next_valid_step_is_a_sample(rig):
         state = rig.wait_states(k + 2)
         assert state.header.stamp.sec == 11 + k and state.samples == k + 2, case
     assert rig.node.continuous == [True] * len(cases)
+
+
+def test_a_rejected_model_is_refitted_after_more_samples_counted_from_the_verdict(model_file):
+    """The controller's rehearsals failed with the live (ready) model: the node refits after learn_after // 4 more
+    samples counted from the state the verdict answered, however late the verdict arrives (the controller explores
+    that many from there); verdicts that accept, or judge another model, change nothing."""
+    path, model = model_file
+    rig = Rig({'model_path': str(path), 'learn_after': 100})
+    try:
+        verdicts = rig.client.create_publisher(ModelVerdict, 'wheeled/controller/model_verdict', LATCHED)
+        reading = WheeledRobot().read((0.0, 0.6, -math.pi / 2), noisy=False)
+
+        def step(sec):
+            rig.publish_step(sec, reading)
+            rig.wait_states(sec)
+            rig.command([1.0, 1.0])
+            assert rig.ros.spin_until(lambda: len(rig.node.assembler.commands_since_sample) == 1)
+
+        for sec in range(1, 11):
+            step(sec)
+        for other in (ModelVerdict(model_samples=model.n_samples_, accepted=True, learner_samples=5),
+                      ModelVerdict(model_samples=model.n_samples_ + 1, accepted=False, learner_samples=5)):
+            verdicts.publish(other)
+            rig.ros.spin_for(0.3)
+            assert not rig.node.live_rejected and rig.node.fitted_samples == 0
+        verdicts.publish(ModelVerdict(model_samples=model.n_samples_, accepted=False, learner_samples=5,
+                                      reason='rehearsal 1/3 failed (test)'))
+        assert rig.ros.spin_until(lambda: rig.node.live_rejected)
+        assert rig.node.fitted_samples == 5 and rig.node.fitting is None
+        for sec in range(11, 31):                 # 30 samples = 5 + 100 // 4: the refit starts
+            step(sec)
+        assert rig.ros.spin_until(lambda: rig.node.fitted_samples == 30)
+    finally:
+        rig.ros.close()
 
 
 def test_a_small_refit_never_replaces_a_good_loaded_model(model_file, tmp_path):

@@ -12,7 +12,9 @@ from mm_manifold.sensor_manifold import SensorManifoldModel, find_excursions, gr
 from mm_common.wheeled_sensors import SENSOR1, SENSOR2
 from mm_planner.exploration import UNDIRECTED, RandomExplorer
 from mm_planner.switching_controller import SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SwitchingController, blind
-from mm_planner.wall_agent import WallAgent
+from mm_manifold.sensor_manifold import StateTracker
+from mm_msgs.msg import ControllerStatus
+from mm_planner.wall_agent import Goal, Observation, WallAgent
 from mm_planner.wall_model import WallModel
 from mm_sim.wheeled_model import WheeledRobot
 
@@ -446,3 +448,65 @@ def test_the_watchdog_brings_the_robot_back_when_the_route_is_wrong(paper_robot_
     # The longest stretch counted by the agent is the one the readings show.
     runs = np.diff(np.flatnonzero(np.diff(np.r_[0, blind_steps.astype(int), 0])))[::2]
     assert max(runs) == episode.longest_blind[0]
+
+
+def rehearse(robot, model, view, rehearsals, max_steps=20000, goal=None):
+    """The agent given a model the learner found ready, on the robot, the states tracked as the learner tracks them,
+    until it leaves REHEARSING; `goal` is sent right after the model (it must wait). Returns the agent and its
+    decisions."""
+    agent = WallAgent(DT, exploration_steps=0, rehearsals=rehearsals, random_state=0)
+    decisions = [agent.step(Observation(model=view))]
+    if goal is not None:
+        decisions.append(agent.step(Observation(goal=goal)))
+    tracker, pose, bumped, last = StateTracker(model), PAPER_START, False, None
+    for n in range(max_steps):
+        if agent.phase != ControllerStatus.PHASE_REHEARSING:
+            break
+        r = robot.read(pose)
+        state = Observation(state=True, stamp=n, readings=r, bumped=bumped, learner_samples=n + 1)
+        state.space, state.coordinates, state.sensor2_estimate, _ = tracker.update(r, last)
+        decisions.append(agent.step(state))
+        if decisions[-1].command is None:
+            break
+        pose, bumped = robot.step(pose, decisions[-1].command, DT)
+        last = decisions[-1].command
+    return agent, decisions
+
+
+def test_a_ready_model_is_announced_only_after_its_rehearsals_reached(paper_robot_and_model):
+    """A model the learner found ready is first rehearsed: reaches from practised sensor-1 states to practised
+    sensor-2 readings; a user's goal that came meanwhile waits and is taken once the verdict accepted the model."""
+    robot, model = paper_robot_and_model
+    view = WallModel.from_msg(model_message(robot, model))
+    view.ready, view.readiness = True, ''          # short exploration: the held-out gate is tested in test_wall_model
+    goal = Goal(sensor2_goal_reading(robot, (0.0, 0.12, 0.0)), stamp=5)
+    agent, decisions = rehearse(robot, model, view, 2, goal=goal)
+    assert decisions[1].goal_accepted and decisions[1].phase_name == 'REHEARSING'
+    verdicts = [d.verdict for d in decisions if d.verdict is not None]
+    assert len(verdicts) == 1 and verdicts[0].accepted and verdicts[0].model_samples == view.samples, verdicts
+    assert '2/2 rehearsals reached' in verdicts[0].reason
+    log = [line for d in decisions for line in d.log]
+    assert any('REHEARSING -> WAITING_FOR_GOAL' in line and '2/2 rehearsals' in line for line in log), log
+    assert agent.phase in (ControllerStatus.PHASE_REACHING_SENSOR1, ControllerStatus.PHASE_REACHING_SENSOR2)
+    assert decisions[-1].goal_stamp == 5 and decisions[-1].command is not None     # the goal's first step
+    assert sum(d.command is not None for d in decisions) > 50                         # two reaches were driven
+    assert {d.phase_name for d in decisions[:-1]} == {'REHEARSING'}
+
+
+def test_a_model_whose_rehearsal_fails_is_rejected_and_explored_on(paper_robot_and_model):
+    """Routes that lead nowhere (as in the watchdog test): the first rehearsal fails, the verdict rejects the model
+    with the reason, and the agent explores on instead of ever waiting for a goal with it."""
+    robot, model = paper_robot_and_model
+    wrong = WallModel.from_msg(model_message(robot, model))
+    low, high = wrong.virtual_bounds
+    far_side = np.where(wrong.overlap_coordinates.mean(axis=0) < (low + high) / 2, 1.0, -1.0)
+    wrong.overlap_coordinates = wrong.overlap_coordinates + far_side * (high - low) / 3
+    wrong.ready, wrong.readiness = True, ''
+    agent, decisions = rehearse(robot, model, wrong, 2)
+    verdicts = [d.verdict for d in decisions if d.verdict is not None]
+    assert len(verdicts) == 1 and not verdicts[0].accepted, verdicts
+    assert 'rehearsal 1/2 to the practised sensor-2 reading' in verdicts[0].reason
+    assert verdicts[0].learner_samples > 0
+    assert agent.phase == ControllerStatus.PHASE_EXPLORING and 'model rejected' in agent.detail
+    assert decisions[-1].command is not None                      # the state of the rejection is answered
+    assert 'WAITING_FOR_GOAL' not in {d.phase_name for d in decisions}

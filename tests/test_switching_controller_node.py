@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 from mm_common.ros_harness import RosHarness
-from mm_msgs.msg import ControllerStatus, ManifoldState, SensorGoal
+from mm_msgs.msg import ControllerStatus, ManifoldState, ModelVerdict, SensorGoal
 from mm_msgs.srv import SetSensorGoal
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.parameter import Parameter
@@ -49,10 +49,12 @@ def blind_message(msg):
 
 class Rig:
     def __init__(self, params):
+        """`params` of the node; rehearsals 0 unless given (most tests drive the phases by hand, with states that
+        never reach anything)."""
         self.ros = RosHarness()
         try:
             self.node = self.ros.add(SwitchingControllerNode(context=self.ros.context, parameter_overrides=[
-                Parameter(k, value=v) for k, v in params.items()]))
+                Parameter(k, value=v) for k, v in {'rehearsals': 0, **params}.items()]))
             self.client = self.ros.node('controller_test_client')
             self.commands, self.status = [], []
             self.client.create_subscription(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands',
@@ -429,5 +431,28 @@ def test_a_clock_that_went_back_starts_a_new_timeline_and_old_stamps_stay_reject
         clock_at(5)
         rig.state(5, bumper=False)
         assert rig.ros.spin_until(lambda: len(rig.commands) == 5)
+    finally:
+        rig.ros.close()
+
+
+def test_a_model_rejected_by_its_rehearsal_is_published_as_such_and_explored_on(learned):
+    """With rehearsals, a ready model first sends the robot rehearsing (REHEARSING on the status, commands go out);
+    a rehearsal that cannot even start (sensor 1 never in range within max_reach_steps) rejects the model: the
+    verdict goes out on the latched model_verdict topic (a late subscriber gets it) and the robot explores on."""
+    msg, _ = learned
+    rig = Rig({'exploration_steps': 8, 'random_seed': 1, 'rehearsals': 2, 'max_reach_steps': 5})
+    try:
+        rig.model_pub.publish(msg)
+        assert rig.ros.spin_until(lambda: rig.phase() == 'REHEARSING', timeout=10)
+        for k in range(1, 7):                             # nothing in range: the rehearsal explores toward the wall
+            rig.state(k, sensor1=(INF, INF, INF), bumper=False)
+            assert rig.ros.spin_until(lambda: len(rig.commands) == k), f'no command at state {k}'
+        assert rig.ros.spin_until(lambda: rig.phase() == 'EXPLORING', timeout=10), rig.status[-1].detail
+        assert 'model rejected' in rig.status[-1].detail
+        verdicts = []
+        rig.client.create_subscription(ModelVerdict, 'wheeled/controller/model_verdict', verdicts.append, LATCHED)
+        assert rig.ros.spin_until(lambda: verdicts, timeout=10)
+        v = verdicts[-1]
+        assert not v.accepted and v.model_samples == msg.samples and 'sensor 1 not in range' in v.reason
     finally:
         rig.ros.close()

@@ -143,7 +143,7 @@ def test_agent_explores_on_while_the_model_is_not_ready_and_fails_at_the_cap(mod
 
 def test_agent_never_commands_non_finite_and_reports_its_phases(model):
     view = WallModel.from_msg(model_message(WheeledRobot(), announced(model)))
-    agent = WallAgent(DT, exploration_steps=0)
+    agent = WallAgent(DT, exploration_steps=0, rehearsals=0)       # rehearsals: tests/test_switching_controller.py
     assert agent.phase == ControllerStatus.PHASE_LEARNING
     decision = agent.step(Observation(model=view))
     assert decision.phase_name == 'WAITING_FOR_GOAL' and decision.command is None

@@ -2,10 +2,11 @@
 switching_controller node drives and the same SensorManifoldModel the sensor_manifold node fits.
 
 The learning loop is the graph's: the agent explores `exploration_steps`, the learner fits on every sample, the agent
-takes the model through its message; a model that is not ready sends the agent exploring `exploration_steps // 4`
-more, and the learner refits after as many more samples (the nodes' rule), until the model is ready or the cap is hit
-(mm_bringup.wall_experiment.learn, with the hyperparameters under test).
-Samples are counted as the nodes count them (every explored step, extra exploration included).
+takes the model through its message; a model that is not ready, or that failed one of the agent's rehearsals, sends
+the agent exploring `exploration_steps // 4` more, and the learner refits after as many more samples (the nodes'
+rule), until the model is ready and rehearsed or the cap is hit (mm_bringup.wall_experiment.learn, with the
+hyperparameters under test: explorer settings, `--rehearsals`). Samples are counted as the nodes count them (every
+step, extra exploration and rehearsals included); `explored` counts the exploration steps among them.
 
 Seeds: exploration seeds 100-119 and task seed 1103 only; the benchmark (mm_bringup/bench/wall_task.py) uses
 exploration seeds 1000+ and task seeds 5000+, never these. Layouts and robots are the benchmark's (the layout files
@@ -67,20 +68,21 @@ def evaluate(robot: WheeledRobot, dt: float, model, tasks: int, tolerance: float
 
 
 def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, model_params=None,
-             explorer_params=None) -> Dict:
+             explorer_params=None, rehearsals=None) -> Dict:
     t0 = time.monotonic()
     spec = ROBOTS[robot_name]
     robot, dt = layout_robot(layout, spec['scale'])
     dt = spec['dt'] or dt
     learned = learn(robot, steps, dt, seed, max_samples=max_samples, model_params=model_params,
-                    explorer_params=explorer_params)
+                    explorer_params=explorer_params, rehearsals=rehearsals)
     model, samples = learned.fitted, learned.samples
     # Tasks are run with the model even when it is not ready (as if announced anyway): success_if_used against the
     # held-out error is what the readiness bound is chosen from; `success` counts a not-ready model as 0 (the graph
     # never acts on it).
     rate, ratio, err = evaluate(robot, dt, model, tasks, tolerance)
     ready = bool(model is not None and model.ready)
-    return dict(layout=layout, robot=robot_name, seed=seed, exploration_steps=steps, samples=samples, ready=ready,
+    return dict(layout=layout, robot=robot_name, seed=seed, exploration_steps=steps, samples=samples,
+                explored=learned.explored, ready=ready,
                 heldout_sensor2_error=getattr(model, 'heldout_sensor2_error_', math.inf),
                 heldout_limit=getattr(model, 'heldout_limit_', 0.0),
                 heldout_reentry_error=getattr(model, 'heldout_reentry_error_', math.nan),
@@ -92,14 +94,18 @@ def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, mod
 
 
 def summarize(rows: List[Dict]) -> List[Dict]:
-    """Per explorer setting, over every cell it ran (layouts x robots x seeds): ready models, mean success (a
-    model that is not ready counts 0) and cells at >= 0.95; best first: the choice rule takes the first."""
+    """Per setting (explorer hyperparameters and rehearsals), over every cell it ran (layouts x robots x seeds): ready
+    models, mean success (a model that is not ready counts 0), cells at >= 0.95, ready models below 0.8 (announced
+    but failing tasks) and the median samples; best first: the choice rule takes the first."""
     by_setting: Dict[str, List[Dict]] = {}
     for row in rows:
-        by_setting.setdefault(json.dumps(row['explorer'], sort_keys=True), []).append(row)
-    summary = [dict(explorer=json.loads(key), cells=len(cells), ready=sum(r['ready'] for r in cells),
+        key = {'explorer': row['explorer'], 'rehearsals': row.get('rehearsals')}
+        by_setting.setdefault(json.dumps(key, sort_keys=True), []).append(row)
+    summary = [dict(**json.loads(key), cells=len(cells), ready=sum(r['ready'] for r in cells),
                     mean_success=round(float(np.mean([r['success'] for r in cells])), 3),
-                    cells_at_095=sum(r['success'] >= 0.95 for r in cells))
+                    cells_at_095=sum(r['success'] >= 0.95 for r in cells),
+                    ready_below_080=sum(r['ready'] and r.get('success_if_used', r['success']) < 0.8 for r in cells),
+                    median_samples=float(np.median([r.get('samples', math.nan) for r in cells])))
                for key, cells in by_setting.items()]
     return sorted(summary, key=lambda s: -s['mean_success'])
 
@@ -115,6 +121,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument('--tolerance', type=float, default=0.005)
     parser.add_argument('--explorer', nargs='+', type=json.loads, default=[{}],
                         help='RandomExplorer hyperparameter sets to compare, each a JSON object')
+    parser.add_argument('--rehearsals', nargs='+', type=int, default=[None],
+                        help="WallAgent rehearsals to compare (default: the agent's own default)")
     parser.add_argument('--rows', nargs='+', type=Path, default=None,
                         help='summarize rows printed by earlier runs (one JSON object per line) instead of running')
     parser.add_argument('--note', default='', help='what the output file should say about how it was made')
@@ -132,11 +140,12 @@ def main(argv: Optional[List[str]] = None) -> int:
         for robot in args.robots:
             for seed in args.seeds:
                 for params in args.explorer:
-                    row = run_cell(layout, robot, seed, args.steps, args.tasks, args.tolerance, args.max_samples,
-                                   explorer_params=params)
-                    row['explorer'] = params
-                    print(json.dumps(row), flush=True)
-                    rows.append(row)
+                    for rehearsals in args.rehearsals:
+                        row = run_cell(layout, robot, seed, args.steps, args.tasks, args.tolerance,
+                                       args.max_samples, explorer_params=params, rehearsals=rehearsals)
+                        row.update(explorer=params, rehearsals=rehearsals)
+                        print(json.dumps(row), flush=True)
+                        rows.append(row)
     return _write(args, rows)
 
 

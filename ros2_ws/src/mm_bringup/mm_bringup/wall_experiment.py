@@ -137,52 +137,61 @@ def explore(robot: WheeledRobot, steps: int, start=PAPER_START, random_state: in
 @dataclass
 class Learned:
     """What the exploration-and-learning loop ended with: the model (None when it never became ready), samples
-    explored in all (extra exploration included, as the nodes count them) and the agent's last status detail."""
+    taken in all (extra exploration and rehearsals included, as the nodes count them), exploration steps among them,
+    and the agent's last status detail."""
     model: Optional[SensorManifoldModel]
     samples: int
     detail: str
     fitted: Optional[SensorManifoldModel] = None    # the last model fitted, ready or not (for tuning the bound)
+    explored: int = 0
 
 
 def learn(robot: WheeledRobot, exploration_steps: int, dt: float, random_state: int, start=PAPER_START,
           max_samples: Optional[int] = None, model_params: Optional[dict] = None,
-          explorer_params: Optional[dict] = None) -> Learned:
+          explorer_params: Optional[dict] = None, rehearsals: Optional[int] = None) -> Learned:
     """The graph's exploration and learning in process: the WallAgent explores until it asks for a model, the
     learner fits on every sample so far and the model reaches the agent through its message; a model that is not
     ready sends the agent exploring again (exploration_steps // 4 more) and the learner refits, as sensor_manifold
-    does, until the agent waits for a goal or gives up at its cap of `max_samples` explored steps (default 4 x
-    exploration_steps, the node's default). `model_params` (SensorManifoldModel) and `explorer_params`
+    does. A ready one is rehearsed (WallAgent.rehearsals; None: the agent's default) on the learner's tracked states,
+    as in the graph; a rejected one sends the agent exploring again and the learner refits on everything it has,
+    rehearsals included. Until the agent waits for a goal or gives up at its cap of `max_samples` explored steps
+    (default 4 x exploration_steps, the node's default). `model_params` (SensorManifoldModel) and `explorer_params`
     (RandomExplorer) are hyperparameters under test (mm_bringup.tune_wall); a fit that fails (too little data) ends
     the loop without a model."""
     max_samples = max_samples or 4 * exploration_steps
     # the cap is the agent's own (the controller node's max_exploration_steps): it stops exploring, not the fit of
     # what was explored, and ends FAILED with the reason
     agent = WallAgent(dt, exploration_steps=exploration_steps, random_state=random_state,
-                      max_exploration_steps=max_samples, explorer_params=explorer_params)
+                      max_exploration_steps=max_samples, explorer_params=explorer_params,
+                      **({} if rehearsals is None else {'rehearsals': rehearsals}))
     pose, bumped = tuple(start), False
     R, U = [], []
-    model, r = None, None
-    while agent.phase in (ControllerStatus.PHASE_EXPLORING, ControllerStatus.PHASE_LEARNING):
+    model, r, tracker = None, None, None
+    learning = (ControllerStatus.PHASE_EXPLORING, ControllerStatus.PHASE_LEARNING, ControllerStatus.PHASE_REHEARSING)
+    while agent.phase in learning:
         if agent.phase == ControllerStatus.PHASE_LEARNING:
             continuous = np.ones(len(R), dtype=bool)
             continuous[-1:] = False
             try:
                 model = SensorManifoldModel(dt, **(model_params or {})).fit(np.array(R), np.array(U), continuous)
             except ValueError as exc:
-                return Learned(None, len(R), f'fit failed: {exc}', model)
-            # A model that is not ready sends the agent exploring again: it answers the state it left unanswered.
+                return Learned(None, len(R), f'fit failed: {exc}', model, agent.explored)
+            tracker = StateTracker(model)          # the learner tracks every later sample with its newest model
+            # The agent answers the state it left unanswered (exploring again, or rehearsing).
             u = agent.step(Observation(model=agent_model(robot, model))).command
         else:
             r = robot.read(pose)
-            u = agent.step(Observation(state=True, stamp=len(R), readings=r, bumped=bumped,
-                                       learner_samples=len(R) + 1)).command
+            state = Observation(state=True, stamp=len(R), readings=r, bumped=bumped, learner_samples=len(R) + 1)
+            if tracker is not None:
+                state.space, state.coordinates, state.sensor2_estimate, _ = tracker.update(r, U[-1] if U else None)
+            u = agent.step(state).command
         if u is None:
             continue
         R.append(r)
         U.append(u)
         pose, bumped = robot.step(pose, u, dt)
     ready = agent.phase == ControllerStatus.PHASE_WAITING_FOR_GOAL
-    return Learned(model if ready else None, len(R), agent.detail, model)
+    return Learned(model if ready else None, len(R), agent.detail, model, agent.explored)
 
 
 @dataclass
@@ -222,7 +231,7 @@ def run_episode(robot: WheeledRobot, model: SensorManifoldModel, start, goal_rea
     the learner's StateTracker making the states as the sensor_manifold node does. `wall_model`: the controller's
     model if not the one the learner's message gives (e.g. a deliberately wrong one)."""
     agent = WallAgent(dt, exploration_steps=0, max_wheel_speed=max_wheel_speed, tolerance=tolerance,
-                      max_reach_steps=max_steps)
+                      max_reach_steps=max_steps, rehearsals=0)      # the model under test is used as it is
     agent.step(Observation(model=wall_model or agent_model(robot, model)))
     decision = agent.step(Observation(goal=Goal(np.asarray(goal_reading, dtype=float))))
     if not decision.goal_accepted:

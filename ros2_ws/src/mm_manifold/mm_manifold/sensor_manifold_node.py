@@ -16,10 +16,12 @@ sent again so a controller that joined late can start the loop.
 
 After `learn_after` samples the SensorManifoldModel (dimension, elastic grid, Jacobians, virtual sensor space) is
 fitted in a background thread (on copies: the live model is never changed, a finished fit is swapped in on the
-executor), and refitted every `refit_every` further samples - and after `learn_after // 4` more when sensor 2 was not
-seen during the excursions (such a model cannot map a sensor-2 goal, so the controller explores on). A refit that is
-worse than the live model (fewer samples, cannot map goals the live one can, fewer practised routes, worse sensor-2
-prediction of the newest samples) is logged and dropped. The model is published as an mm_msgs/SensorManifoldModel
+executor), and refitted every `refit_every` further samples - and after `learn_after // 4` more when the model is not
+ready (sensor 2 not seen during the excursions, or held-out predictions above their bound: the controller explores
+on), or when the controller rejected it (`wheeled/controller/model_verdict`: a rehearsal with it failed; the
+controller explores on). A refit that is worse than the live model (fewer samples, cannot map goals the live one can,
+fewer practised routes, worse sensor-2 prediction of the newest samples) is logged and dropped, unless the live model
+was rejected. The model is published as an mm_msgs/SensorManifoldModel
 message on the latched `wheeled/manifold/model` topic (the controller needs no file and may run on another host); with
 `model_path` set it is also saved atomically there (np.savez + JSON) and loaded at start (every field checked; a bad
 file means learning anew), so a restart does not relearn. With `samples_path` set every sample is appended to that
@@ -41,7 +43,7 @@ from builtin_interfaces.msg import Time
 from mm_common.node_utils import clock_went_back, declare, reject_non_finite, run_node
 from mm_common.qos import LOOP_QOS  # RELIABLE, deep history: see mm_common/qos.py
 from mm_common.wheeled_sensors import SENSOR1, SENSOR2, SENSOR_NAMES
-from mm_msgs.msg import JacobianEstimate, ManifoldState
+from mm_msgs.msg import JacobianEstimate, ManifoldState, ModelVerdict
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
@@ -121,6 +123,7 @@ class SensorManifold(Node):
         self.fitting: Optional[threading.Thread] = None
         self.fit_result: List = []                # written once by the fitting thread, read after it ended
         self.fitted_samples = 0
+        self.live_rejected = False                # the controller's rehearsals with the live model failed
 
         self.state_pub = self.create_publisher(ManifoldState, 'wheeled/manifold/state', LOOP_QOS)
         self.jacobian_pub = self.create_publisher(JacobianEstimate, 'wheeled/manifold/jacobian', LOOP_QOS)
@@ -130,6 +133,7 @@ class SensorManifold(Node):
                                      lambda msg, i=index: self._on_range(i, msg), LOOP_QOS)
         self.create_subscription(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands', self._on_command,
                                  LOOP_QOS)
+        self.create_subscription(ModelVerdict, 'wheeled/controller/model_verdict', self._on_verdict, LATCHED_QOS)
         # Wall-clock timers: with use_sim_time the sim clock stands still while the loop waits (for the model, or
         # for the command of a waiting sample). Neither decides what is learned.
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -240,7 +244,8 @@ class SensorManifold(Node):
         # The fitting thread gets copies only (the warm-start grid too: partial_fit changes it); the live model
         # is never changed after install, so the thread may read it for the comparison.
         warm = copy.deepcopy(self.model.grid_) if self.model is not None else None
-        live, live_fitted_on = self.model, self.live_fitted_on
+        # a rejected live model is no standard a refit has to meet
+        live, live_fitted_on = (None, 0) if self.live_rejected else (self.model, self.live_fitted_on)
         self.fitted_samples = len(R)
         self.get_logger().info(f'fitting the sensor manifold on {len(R)} samples '
                                f'({int(np.sum(~C[:-1]))} breaks in the chain of consecutive samples)')
@@ -284,6 +289,7 @@ class SensorManifold(Node):
             self.get_logger().error(f'could not save the model to {self.model_path} ({unsaved}); it is used from '
                                     'memory and lost on a restart')
         self.live_fitted_on = m.n_samples_
+        self.live_rejected = False
         self._install(m)
         self.get_logger().info(
             f'model {"ready" if m.ready else "fitted"}: dimension {m.dimension_}, grid residual '
@@ -295,6 +301,18 @@ class SensorManifold(Node):
                                    f'{max(self.learn_after // 4, 1)} more samples')
 
     # --- inputs -------------------------------------------------------------------------------------------------
+    def _on_verdict(self, msg: ModelVerdict) -> None:
+        """The controller rehearsed with a model: a rejection of the live one makes it refit after `learn_after // 4`
+        more samples, counted from the state the verdict answered (the controller explores that many more from
+        there, however late the verdict arrives), whatever the refit's comparison with the live model says."""
+        if msg.accepted or self.model is None or msg.model_samples != self.model.n_samples_ or self.live_rejected:
+            return                          # accepted, or about a model this node no longer holds, or known
+        self.live_rejected = True
+        self.fitted_samples = (msg.learner_samples if 0 < msg.learner_samples <= len(self.readings)
+                               else len(self.readings))
+        self.get_logger().warn(f'the controller rejected the model fitted on {msg.model_samples} samples '
+                               f'({msg.reason[:300]}); refitting after {max(self.learn_after // 4, 1)} more samples')
+
     def _on_command(self, msg: Float64MultiArray) -> None:
         data = np.asarray(msg.data, dtype=float)
         if data.shape != (2,) or not np.all(np.isfinite(data)):
@@ -368,7 +386,7 @@ class SensorManifold(Node):
         more = n - self.fitted_samples
         if self.fitting is None and ((self.model is None and n >= self.learn_after and more > 0)
                                      or (self.model is not None and self.refit_every and more >= self.refit_every)
-                                     or (self.model is not None and not self.model.ready
+                                     or (self.model is not None and (not self.model.ready or self.live_rejected)
                                          and more >= max(self.learn_after // 4, 1))):
             self._start_fit()
         self._publish(sample.reading, sample.command, stamp)

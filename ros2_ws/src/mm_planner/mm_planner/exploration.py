@@ -195,6 +195,23 @@ class RandomExplorer:
         self.plan.extendleft(reversed(sequence))
         self.practice_left = len(sequence)
 
+    def follow(self, readings: np.ndarray, command: np.ndarray) -> None:
+        """The robot drove `command` from `readings` on another's decision (the agent's rehearsals): remembered like
+        its own commands, so that a later retrace toward sensor-1 range undoes it too; the plan under way is dropped
+        (it was made for where the robot was)."""
+        readings = np.asarray(readings, dtype=float)
+        self.last_valid = np.where(np.isnan(readings), self.last_valid, readings)
+        cmd = np.asarray(command, dtype=float).copy()
+        self.plan.clear()
+        self.practice_left = 0
+        self._finish_excursion()
+        self.mode = 'wander'
+        if np.all(np.isfinite(self.last_valid[list(SENSOR1)])):
+            self.since_in_range = [cmd]
+        else:
+            self.since_in_range.append(cmd)
+        self.last_command = cmd
+
     def command(self, readings: np.ndarray, bumped: bool = False) -> np.ndarray:
         """Next wheel command [left, right] from the current readings (NaN = lost, +-inf = out of range)."""
         readings = np.asarray(readings, dtype=float)

@@ -2,12 +2,13 @@
 wall task; the offline runner mm_bringup.wall_experiment drives the same class).
 
 One wheel command per `wheeled/manifold/state` (the lockstep loop: simulator -> manifold -> controller -> simulator);
-phases (EXPLORING -> LEARNING -> WAITING_FOR_GOAL -> REACHING_* -> GOAL_REACHED / FAILED, see wall_agent) are
-published on `wheeled/controller/status`. Goals come as mm_msgs/SensorGoal on `wheeled/goal` (latched) or through the
-`wheeled/set_goal` service. The learned model arrives as an mm_msgs/SensorManifoldModel message on the latched
-`wheeled/manifold/model` topic: no file, so learner and controller may run on different hosts. Every input is
-checked first; a bad one is dropped with a throttled log line saying why, and the node keeps running. Nothing here
-sees world coordinates.
+phases (EXPLORING -> LEARNING -> REHEARSING -> WAITING_FOR_GOAL -> REACHING_* -> GOAL_REACHED / FAILED, see
+wall_agent) are published on `wheeled/controller/status`. The verdict of the rehearsals on a model the learner found
+ready goes out on the latched `wheeled/controller/model_verdict` (a rejected model makes the learner refit). Goals
+come as mm_msgs/SensorGoal on `wheeled/goal` (latched) or through the `wheeled/set_goal` service. The learned model
+arrives as an mm_msgs/SensorManifoldModel message on the latched `wheeled/manifold/model` topic: no file, so learner
+and controller may run on different hosts. Every input is checked first; a bad one is dropped with a throttled log
+line saying why, and the node keeps running. Nothing here sees world coordinates.
 """
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from mm_common.node_utils import clock_went_back, declare, reject_non_finite, run_node
 from mm_common.qos import LOOP_QOS  # RELIABLE, deep history: see mm_common/qos.py
-from mm_msgs.msg import ControllerStatus, ManifoldState, SensorGoal
+from mm_msgs.msg import ControllerStatus, ManifoldState, ModelVerdict, SensorGoal
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
 from mm_msgs.srv import SetSensorGoal
 from rcl_interfaces.msg import SetParametersResult
@@ -33,8 +34,9 @@ from mm_planner.exploration import RandomExplorer
 from mm_planner.wall_agent import Decision, Goal, Observation, WallAgent
 from mm_planner.wall_model import WallModel
 
-# Goals and the model are latched state (TRANSIENT_LOCAL, depth 1): a controller started or restarted after they were
-# published still gets the newest; RELIABLE because a lost model would leave the controller unable to control.
+# Goals, the model and the verdict on it are latched state (TRANSIENT_LOCAL, depth 1): a node started or restarted
+# after they were published still gets the newest; RELIABLE because a lost model would leave the controller unable to
+# control (and a lost rejection the learner waiting with a model the controller will not use).
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 SPACES = (ManifoldState.SPACE_NONE, ManifoldState.SPACE_SENSOR1, ManifoldState.SPACE_VIRTUAL_SENSOR1,
           ManifoldState.SPACE_SENSOR2)
@@ -91,10 +93,15 @@ class SwitchingControllerNode(Node):
         share = declare(self, 'exploration_excursion_share', explorer_defaults['excursion_share'].default,
                         'Excursions start whenever they have had less than this share of the exploration steps; '
                         'fixed at start-up', min_value=0.0, max_value=1.0, read_only=True)
+        rehearsals = declare(self, 'rehearsals', inspect.signature(WallAgent).parameters['rehearsals'].default,
+                             'Practice reaches to practised sensor-2 readings a model the learner found ready must '
+                             'pass before it is announced (0: the learner\'s held-out check decides alone); fixed at '
+                             'start-up', min_value=0, max_value=100, read_only=True)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.agent = WallAgent(self.dt, exploration_steps, max_wheel_speed, tolerance, max_reach_steps,
                                random_state=seed, max_exploration_steps=max_exploration or None,
-                               explorer_params={'approach_probability': approach, 'excursion_share': share})
+                               explorer_params={'approach_probability': approach, 'excursion_share': share},
+                               rehearsals=rehearsals)
 
         self.bumped = False
         # The bumper reading of a step travels on its own topic and may arrive after the state: in lockstep the
@@ -114,6 +121,7 @@ class SwitchingControllerNode(Node):
         self.command_pub = self.create_publisher(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands',
                                                  LOOP_QOS)
         self.status_pub = self.create_publisher(ControllerStatus, 'wheeled/controller/status', LOOP_QOS)
+        self.verdict_pub = self.create_publisher(ModelVerdict, 'wheeled/controller/model_verdict', LATCHED_QOS)
         self.create_subscription(ManifoldState, 'wheeled/manifold/state', self._on_state, LOOP_QOS)
         self.create_subscription(Bool, 'wheeled/bumper', self._on_bumper, LOOP_QOS)
         self.create_timer(0.5, self._on_wall_timer, clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -279,6 +287,12 @@ class SwitchingControllerNode(Node):
         msg.error, msg.target, msg.step = float(decision.error), list(decision.target), decision.step
         msg.goal_stamp = decision.goal_stamp if decision.goal_stamp is not None else Time()
         self.status_pub.publish(msg)
+        if decision.verdict is not None:
+            v = decision.verdict
+            verdict = ModelVerdict(model_samples=v.model_samples, accepted=v.accepted, reason=v.reason,
+                                   learner_samples=v.learner_samples)
+            verdict.header.stamp = msg.header.stamp
+            self.verdict_pub.publish(verdict)
 
 
 def main(args=None):

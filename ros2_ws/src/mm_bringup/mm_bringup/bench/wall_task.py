@@ -17,7 +17,8 @@ robot as its sensor-2 reading; tolerance 10 mm. Scoring uses ground truth (evalu
 - path ratio: travelled path over the oracle's (turn in place, drive straight to the goal distance, turn in place);
 - longest blind stretch: the most consecutive steps with no sensor group in range, as the controller counts them
   (mm_planner.switching_controller.blind), and its ratio to the length the chosen route predicted;
-- samples: exploration samples in all, the extra exploration of a model that was not ready included.
+- samples: samples the learner took in all, the extra exploration of a model that was not ready and the
+  rehearsals of a model before it was announced included (`explored`: exploration steps among them).
 Seeds: exploration seeds from 1000 and task seeds from 5000, disjoint from the tuning seeds (100-119,
 mm_bringup.tune_wall) and from everything the code was developed on.
 """
@@ -113,6 +114,7 @@ def run_cell(layout: str, robot_name: str, seed: int, budget: int, noisy: bool, 
     learned = learn(robot, budget, dt, random_state=seed)
     cell = {'layout': layout, 'robot': robot_name, 'exploration_seed': seed, 'exploration_budget': budget,
             'noisy': noisy, 'task_seed': TASK_SEED_BASE + seed - 1000, 'samples': learned.samples,
+            'explored': learned.explored, 'model_samples': learned.model.n_samples_ if learned.model else None,
             'learning_detail': learned.detail}
     tasks = tasks_for(clean_robot, cell['task_seed'], n_tasks)
     if learned.model is None:
