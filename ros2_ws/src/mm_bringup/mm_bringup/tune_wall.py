@@ -5,7 +5,7 @@ The learning loop is the graph's: the agent explores `exploration_steps`, the le
 takes the model through its message; a model that is not ready, or that failed one of the agent's rehearsals, sends
 the agent exploring `exploration_steps // 4` more, and the learner refits after as many more samples (the nodes'
 rule), until the model is ready and rehearsed or the cap is hit (mm_bringup.wall_experiment.learn, with the
-hyperparameters under test: explorer settings, `--rehearsals`). Samples are counted as the nodes count them (every
+hyperparameters under test: explorer settings, `--rehearsals`, `--model`). Samples are counted as the nodes count them (every
 step, extra exploration and rehearsals included); `explored` counts the exploration steps among them.
 
 Seeds: exploration seeds 100-119 and task seed 1103 only; the benchmark (mm_bringup/bench/wall_task.py) uses
@@ -99,7 +99,7 @@ def summarize(rows: List[Dict]) -> List[Dict]:
     but failing tasks) and the median samples; best first: the choice rule takes the first."""
     by_setting: Dict[str, List[Dict]] = {}
     for row in rows:
-        key = {'explorer': row['explorer'], 'rehearsals': row.get('rehearsals')}
+        key = {'explorer': row['explorer'], 'rehearsals': row.get('rehearsals'), 'model': row.get('model', {})}
         by_setting.setdefault(json.dumps(key, sort_keys=True), []).append(row)
     summary = [dict(**json.loads(key), cells=len(cells), ready=sum(r['ready'] for r in cells),
                     mean_success=round(float(np.mean([r['success'] for r in cells])), 3),
@@ -121,6 +121,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument('--tolerance', type=float, default=0.005)
     parser.add_argument('--explorer', nargs='+', type=json.loads, default=[{}],
                         help='RandomExplorer hyperparameter sets to compare, each a JSON object')
+    parser.add_argument('--model', nargs='+', type=json.loads, default=[{}],
+                        help='SensorManifoldModel hyperparameter sets to compare (e.g. {"heldout_bound": 1.0})')
     parser.add_argument('--rehearsals', nargs='+', type=int, default=[None],
                         help="WallAgent rehearsals to compare (default: the agent's own default)")
     parser.add_argument('--rows', nargs='+', type=Path, default=None,
@@ -141,11 +143,13 @@ def main(argv: Optional[List[str]] = None) -> int:
             for seed in args.seeds:
                 for params in args.explorer:
                     for rehearsals in args.rehearsals:
-                        row = run_cell(layout, robot, seed, args.steps, args.tasks, args.tolerance,
-                                       args.max_samples, explorer_params=params, rehearsals=rehearsals)
-                        row.update(explorer=params, rehearsals=rehearsals)
-                        print(json.dumps(row), flush=True)
-                        rows.append(row)
+                        for model_params in args.model:
+                            row = run_cell(layout, robot, seed, args.steps, args.tasks, args.tolerance,
+                                           args.max_samples, model_params=model_params, explorer_params=params,
+                                           rehearsals=rehearsals)
+                            row.update(explorer=params, rehearsals=rehearsals, model=model_params)
+                            print(json.dumps(row), flush=True)
+                            rows.append(row)
     return _write(args, rows)
 
 
