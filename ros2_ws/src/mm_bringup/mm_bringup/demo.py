@@ -98,8 +98,9 @@ def wall_experiment(graph: ProcessGraph, work: Path, exploration_steps: int, fig
     robot, dt = layout_robot(layout)       # the simulator's sensor model: ground truth chooses the goal reading only
     goal_pose = PAPER_GOAL_POSES[layout]
     began = time.monotonic()
+    sim_files = [simulator_params_file(), layout_file(layout)]
     with WallGraph(work, exploration_steps=exploration_steps, graph=graph, recorder='recorder', dt=dt,
-                   recorded_topics=LOOP_TOPICS, sim_params_files=[simulator_params_file(), layout_file(layout)]) as wall:
+                   recorded_topics=LOOP_TOPICS, sim_params_files=sim_files) as wall:
         log(f'wheeled graph ({layout} sensor layout) started in {phases.done("wheeled_start")} s; exploring '
             f'{exploration_steps} steps')
         explore_with_progress(wall, exploration_steps)

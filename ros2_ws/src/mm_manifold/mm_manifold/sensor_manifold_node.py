@@ -21,8 +21,8 @@ ready (sensor 2 not seen during the excursions, or held-out predictions above th
 on), or when the controller rejected it (`wheeled/controller/model_verdict`: a rehearsal with it failed; the
 controller explores on). A refit that is worse than the live model (fewer samples, cannot map goals the live one can,
 fewer practised routes, worse sensor-2 prediction of the newest samples) is logged and dropped, unless the live model
-was rejected. The model is published as an mm_msgs/SensorManifoldModel
-message on the latched `wheeled/manifold/model` topic (the controller needs no file and may run on another host); with
+was rejected. The model is published as an mm_msgs/SensorManifoldModel message on the latched
+`wheeled/manifold/model` topic (the controller needs no file and may run on another host); with
 `model_path` set it is also saved atomically there (np.savez + JSON) and loaded at start (every field checked; a bad
 file means learning anew), so a restart does not relearn. With `samples_path` set every sample is appended to that
 file as it is taken (mm_manifold.sample_log) and the file is loaded at start, so a crashed learner restarts with all

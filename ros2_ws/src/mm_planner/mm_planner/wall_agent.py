@@ -10,13 +10,13 @@ during its excursions cannot map any goal, or whose held-out predictions miss th
 GOAL_REACHED or FAILED (then waiting again).
 
 Rehearsing: a model the learner found ready is announced only after `rehearsals` practice reaches with it succeeded,
-each to a sensor-2 reading the robot saw during its own excursions (drawn with `random_state`), from wherever the robot
-is (first driving as it explores until sensor 1 sees the wall). Success is judged as for any goal, on the robot's own
-readings. One failed rehearsal rejects the model: `verdict` says so (the node publishes it, and the learner refits
-after more samples), and `exploration_steps // 4` more exploration steps follow, within the same cap. The held-out
-check alone let through models that failed many tasks: on the paper layout's tuning seeds (results/
-tune_wall_rehearsals.json), 3 of 20 announced models reached 40-65 % of random tasks; with 5 rehearsals none below
-80 %, mean success 0.91 -> 0.97, for a median 4 400 samples instead of 3 000 (the rehearsals are samples too). A learner that holds fewer
+each from a practised sensor-1 state to a sensor-2 reading the robot saw during its own excursions (both drawn with
+`random_state`; see _rehearse). Success is judged as for any goal, on the robot's own readings. One failed rehearsal
+rejects the model: `verdict` says so (the node publishes it, and the learner refits after more samples), and
+`exploration_steps // 4` more exploration steps follow, within the same cap. The held-out check alone let through
+models that failed many tasks: on the paper layout's tuning seeds (results/tune_wall_rehearsals.json), 3 of 20
+announced models reached 40-65 % of random tasks; with 5 rehearsals none below 80 %, mean success 0.91 -> 0.97, for a
+median 4 400 samples instead of 3 000 (the rehearsals are samples too). A learner that holds fewer
 samples than were explored (it restarted) gets as many more exploration steps before LEARNING. Nothing here sees world
 coordinates: an observation holds the learner's state of one step, the raw readings and the bumper, and the events
 (a new model, a new goal) that arrived since the last step.
