@@ -328,6 +328,26 @@ def test_a_rejected_model_is_refitted_after_more_samples_counted_from_the_verdic
         rig.ros.close()
 
 
+def test_a_rejection_that_arrives_after_the_samples_it_counts_from_starts_the_refit_at_once(model_file):
+    """The controller explores learn_after // 4 steps after the state its verdict answered and then waits for a
+    model: a verdict that arrives only after those samples must start the refit itself (no sample follows)."""
+    path, model = model_file
+    rig = Rig({'model_path': str(path), 'learn_after': 100})
+    try:
+        reading = WheeledRobot().read((0.0, 0.6, -math.pi / 2), noisy=False)
+        for sec in range(1, 31):
+            rig.publish_step(sec, reading)
+            rig.wait_states(sec)
+            rig.command([1.0, 1.0])
+            assert rig.ros.spin_until(lambda: len(rig.node.assembler.commands_since_sample) == 1)
+        assert rig.node.fitted_samples == 0 and rig.node.fitting is None
+        verdicts = rig.client.create_publisher(ModelVerdict, 'wheeled/controller/model_verdict', LATCHED)
+        verdicts.publish(ModelVerdict(model_samples=model.n_samples_, accepted=False, learner_samples=5))
+        assert rig.ros.spin_until(lambda: rig.node.fitted_samples == 30)     # started, without a new sample
+    finally:
+        rig.ros.close()
+
+
 def test_a_small_refit_never_replaces_a_good_loaded_model(model_file, tmp_path):
     """Issue 13: with refit_every lowered at runtime, a refit on the 130 samples since a restart must not overwrite
     the good loaded model (in memory, on the topic or on disk); the node says why and keeps controlling with it."""

@@ -312,6 +312,7 @@ class SensorManifold(Node):
                                else len(self.readings))
         self.get_logger().warn(f'the controller rejected the model fitted on {msg.model_samples} samples '
                                f'({msg.reason[:300]}); refitting after {max(self.learn_after // 4, 1)} more samples')
+        self._fit_if_due()          # a verdict that came after those samples (no more come while the loop waits)
 
     def _on_command(self, msg: Float64MultiArray) -> None:
         data = np.asarray(msg.data, dtype=float)
@@ -382,6 +383,12 @@ class SensorManifold(Node):
         if not sample.follows and self.tracker is not None:
             self.tracker.reset()
         self.readings.append(sample.reading)
+        self._fit_if_due()
+        self._publish(sample.reading, sample.command, stamp)
+
+    def _fit_if_due(self) -> None:
+        """Start a fit when one is due: the first after `learn_after` samples, then every `refit_every`, and after
+        `learn_after // 4` more when the live model is not ready or was rejected."""
         n = len(self.readings)
         more = n - self.fitted_samples
         if self.fitting is None and ((self.model is None and n >= self.learn_after and more > 0)
@@ -389,7 +396,6 @@ class SensorManifold(Node):
                                      or (self.model is not None and (not self.model.ready or self.live_rejected)
                                          and more >= max(self.learn_after // 4, 1))):
             self._start_fit()
-        self._publish(sample.reading, sample.command, stamp)
 
     # --- output -------------------------------------------------------------------------------------------------
     def _publish(self, reading: np.ndarray, command: Optional[np.ndarray], stamp) -> None:
