@@ -317,6 +317,10 @@ def test_a_rejected_model_is_refitted_after_more_samples_counted_from_the_verdic
             verdicts.publish(other)
             rig.ros.spin_for(0.3)
             assert not rig.node.live_rejected and rig.node.fitted_samples == 0
+        # malformed: it claims more samples than the learner holds - rejected with a log line, nothing changes
+        verdicts.publish(ModelVerdict(model_samples=model.n_samples_, accepted=False, learner_samples=2**32 - 1))
+        assert rig.ros.spin_until(lambda: rig.node.rejected == 1)
+        assert not rig.node.live_rejected and rig.node.fitted_samples == 0
         verdicts.publish(ModelVerdict(model_samples=model.n_samples_, accepted=False, learner_samples=5,
                                       reason='rehearsal 1/3 failed (test)'))
         assert rig.ros.spin_until(lambda: rig.node.live_rejected)

@@ -305,11 +305,15 @@ class SensorManifold(Node):
         """The controller rehearsed with a model: a rejection of the live one makes it refit after `learn_after // 4`
         more samples, counted from the state the verdict answered (the controller explores that many more from
         there, however late the verdict arrives), whatever the refit's comparison with the live model says."""
+        if msg.learner_samples > len(self.readings):
+            # it answered a state of this learner, so it cannot count more samples than the learner holds
+            self._reject('model verdict', f'learner_samples {msg.learner_samples} above the {len(self.readings)} '
+                                          'samples this node holds')
+            return
         if msg.accepted or self.model is None or msg.model_samples != self.model.n_samples_ or self.live_rejected:
             return                          # accepted, or about a model this node no longer holds, or known
         self.live_rejected = True
-        self.fitted_samples = (msg.learner_samples if 0 < msg.learner_samples <= len(self.readings)
-                               else len(self.readings))
+        self.fitted_samples = msg.learner_samples or len(self.readings)
         self.get_logger().warn(f'the controller rejected the model fitted on {msg.model_samples} samples '
                                f'({msg.reason[:300]}); refitting after {max(self.learn_after // 4, 1)} more samples')
         self._fit_if_due()          # a verdict that came after those samples (no more come while the loop waits)

@@ -203,11 +203,11 @@ def arm_graph(frames: int, work: Path) -> dict:
     learner extracting SIFT keypoints from every 400x400 frame: frames/s from the 50th frame to the end of the
     exploration, with the CPU each process spent per frame over that stretch; then the seconds of the fit until the
     planner has its first map."""
-    from mm_bringup.arm_graph import ArmGraphDriver, start_arm_sim, start_learning_nodes
+    from mm_bringup.arm_graph import ArmGraphDriver, start_arm_graph
     from mm_bringup.bench.arm_reach import SCENE_SEED
     from mm_msgs.msg import ControllerStatus
     with ProcessGraph(log_dir=work / 'logs') as graph:
-        nodes = [start_arm_sim(graph, SCENE_SEED)] + start_learning_nodes(graph, SCENE_SEED, frames)
+        nodes = start_arm_graph(graph, SCENE_SEED, frames)
         driver = ArmGraphDriver('bench_arm_driver', nodes)
         try:
             driver.spin_until(lambda: len(driver.joints) >= 50, 120.0, '50 arm frames')
