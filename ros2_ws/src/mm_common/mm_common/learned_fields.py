@@ -19,21 +19,9 @@ def n_polynomial_features(degree: int, dim: int) -> int:
 
 
 @lru_cache(maxsize=None)
-def _monomials(degree: int, dim: int) -> Tuple[Tuple[int, ...], ...]:
-    """The variables multiplied in each feature, in the order of the features (the constant first)."""
+def monomials(degree: int, dim: int) -> Tuple[Tuple[int, ...], ...]:
+    """The variables multiplied in each feature of polynomial_features, in their order (the constant first)."""
     return tuple(combo for d in range(degree + 1) for combo in combinations_with_replacement(range(dim), d))
-
-
-@lru_cache(maxsize=None)
-def _gradient_terms(degree: int, dim: int) -> Tuple[Tuple[int, int, int, Tuple[int, ...]], ...]:
-    """(feature, variable, power, the other variables of the monomial) of each non-zero derivative."""
-    terms = []
-    for f, combo in enumerate(_monomials(degree, dim)):
-        for k in sorted(set(combo)):
-            rest = list(combo)
-            rest.remove(k)
-            terms.append((f, k, combo.count(k), tuple(rest)))
-    return tuple(terms)
 
 
 def _product(Z: np.ndarray, variables: Tuple[int, ...]) -> np.ndarray:
@@ -47,23 +35,14 @@ def _product(Z: np.ndarray, variables: Tuple[int, ...]) -> np.ndarray:
 
 
 def polynomial_features(Y: np.ndarray, degree: int, center: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """1, y_i, y_i y_j, ... of the standardised y, up to `degree`. (Per-column products, not np.prod over a gathered
-    array: this runs once per Euler step of every re-entry fit, where numpy's per-call overhead dominated.)"""
+    """1, y_i, y_i y_j, ... of the standardised y, up to `degree` (per-column products: cheaper than np.prod over a
+    gathered array for the few rows the trackers evaluate per step)."""
     Z = (np.atleast_2d(Y) - center) / scale
-    monomials = _monomials(degree, Z.shape[1])
-    P = np.empty((len(Z), len(monomials)))
-    for f, combo in enumerate(monomials):
+    combos = monomials(degree, Z.shape[1])
+    P = np.empty((len(Z), len(combos)))
+    for f, combo in enumerate(combos):
         P[:, f] = _product(Z, combo)
     return P
-
-
-def polynomial_feature_gradients(Y: np.ndarray, degree: int, center: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """(n, features, dim) derivatives of polynomial_features with respect to y (for analytic sensitivities)."""
-    Z = (np.atleast_2d(Y) - center) / scale
-    G = np.zeros((len(Z), len(_monomials(degree, Z.shape[1])), Z.shape[1]))
-    for f, k, power, rest in _gradient_terms(degree, Z.shape[1]):
-        G[:, f, k] = power * _product(Z, rest) / scale[k]
-    return G
 
 
 class PolynomialField:

@@ -12,6 +12,7 @@ from __future__ import annotations
 from typing import Optional, Tuple
 
 import numpy as np
+from numba import njit
 
 
 class ElasticGrid:
@@ -139,14 +140,8 @@ class ElasticGrid:
         """Readings (n, m) -> continuous grid coordinates (n, 2) = (row, col), by Gauss-Newton projection on the
         bilinear patch of the nearest cell (extrapolated past the border, unless `clip`)."""
         X = np.atleast_2d(np.asarray(X, dtype=float))
-        rc = self._lattice_rc((X - self.mean_) @ self.axes_[:2].T)
-        for _ in range(n_newton):
-            p, dr, dc = self._bilinear(rc, derivatives=True)
-            J = np.stack([dr, dc], axis=2)                    # (n, m, 2)
-            res = X - p
-            JtJ = np.einsum('nmi,nmj->nij', J, J) + 1e-12 * np.eye(2)
-            step = np.linalg.solve(JtJ, np.einsum('nmi,nm->ni', J, res)[..., None])[..., 0]
-            rc = rc + np.clip(step, -1.0, 1.0)
+        rc = _project(np.ascontiguousarray(X), np.ascontiguousarray(self.nodes_), self.mean_,
+                      np.ascontiguousarray(self.axes_[:2]), self.extent_, n_newton)
         if clip:
             rc[:, 0] = np.clip(rc[:, 0], 0, self.rows - 1)
             rc[:, 1] = np.clip(rc[:, 1], 0, self.cols - 1)
@@ -173,3 +168,51 @@ class ElasticGrid:
     def distance_to_surface(self, X: np.ndarray) -> np.ndarray:
         X = np.atleast_2d(np.asarray(X, dtype=float))
         return np.linalg.norm(X - self.inverse_transform(self.transform(X)), axis=1)
+
+
+@njit(cache=True)
+def _project(X, nodes, mean, axes, extent, n_newton):
+    """ElasticGrid.transform's Gauss-Newton projection, one reading at a time: the state trackers call it on every
+    sample, where numpy's per-call overhead on (1, 3) arrays cost ~1 ms."""
+    rows, cols, m = nodes.shape
+    out = np.empty((X.shape[0], 2))
+    cell_r = (extent[1, 0] - extent[0, 0]) / (rows - 1)
+    cell_c = (extent[1, 1] - extent[0, 1]) / (cols - 1)
+    dr = np.empty(m)
+    dc = np.empty(m)
+    for n in range(X.shape[0]):
+        pr = 0.0
+        pc = 0.0
+        for k in range(m):
+            pr += (X[n, k] - mean[k]) * axes[0, k]
+            pc += (X[n, k] - mean[k]) * axes[1, k]
+        r = (pr - extent[0, 0]) / cell_r
+        c = (pc - extent[0, 1]) / cell_c
+        for _ in range(n_newton):
+            r0 = min(max(int(np.floor(r)), 0), rows - 2)
+            c0 = min(max(int(np.floor(c)), 0), cols - 2)
+            a = r - r0
+            b = c - c0
+            jrr = 1e-12
+            jrc = 0.0
+            jcc = 1e-12
+            gr = 0.0
+            gc = 0.0
+            for k in range(m):
+                n00, n01 = nodes[r0, c0, k], nodes[r0, c0 + 1, k]
+                n10, n11 = nodes[r0 + 1, c0, k], nodes[r0 + 1, c0 + 1, k]
+                p = (1 - a) * (1 - b) * n00 + (1 - a) * b * n01 + a * (1 - b) * n10 + a * b * n11
+                dr_k = (1 - b) * (n10 - n00) + b * (n11 - n01)
+                dc_k = (1 - a) * (n01 - n00) + a * (n11 - n10)
+                res = X[n, k] - p
+                jrr += dr_k * dr_k
+                jrc += dr_k * dc_k
+                jcc += dc_k * dc_k
+                gr += dr_k * res
+                gc += dc_k * res
+            det = jrr * jcc - jrc * jrc
+            r += min(max((jcc * gr - jrc * gc) / det, -1.0), 1.0)
+            c += min(max((jrr * gc - jrc * gr) / det, -1.0), 1.0)
+        out[n, 0] = r
+        out[n, 1] = c
+    return out
