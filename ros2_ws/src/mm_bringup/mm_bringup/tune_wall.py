@@ -94,12 +94,14 @@ def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, mod
 
 
 def summarize(rows: List[Dict]) -> List[Dict]:
-    """Per setting (explorer hyperparameters and rehearsals), over every cell it ran (layouts x robots x seeds): ready
-    models, mean success (a model that is not ready counts 0), cells at >= 0.95, ready models below 0.8 (announced
-    but failing tasks) and the median samples; best first: the choice rule takes the first."""
+    """Per setting (exploration budget, explorer hyperparameters, rehearsals and model hyperparameters), over every
+    cell it ran (layouts x robots x seeds): ready models, mean success (a model that is not ready counts 0), cells at
+    >= 0.95, ready models below 0.8 (announced but failing tasks) and the median samples; best first: the choice
+    rule takes the first."""
     by_setting: Dict[str, List[Dict]] = {}
     for row in rows:
-        key = {'explorer': row['explorer'], 'rehearsals': row.get('rehearsals'), 'model': row.get('model', {})}
+        key = {'exploration_steps': row['exploration_steps'], 'explorer': row['explorer'],
+               'rehearsals': row.get('rehearsals'), 'model': row.get('model', {})}
         by_setting.setdefault(json.dumps(key, sort_keys=True), []).append(row)
     summary = [dict(**json.loads(key), cells=len(cells), ready=sum(r['ready'] for r in cells),
                     mean_success=round(float(np.mean([r['success'] for r in cells])), 3),

@@ -68,16 +68,20 @@ def test_learning_loop_takes_the_hyperparameters_under_test():
 
 
 def test_tuning_rows_of_several_runs_are_summarized_into_one_choice(tmp_path):
-    """Layouts tuned in parallel processes print rows; `--rows` merges them and ranks the settings (explorer,
-    rehearsals) by mean success over every cell, a model that is not ready counting 0."""
-    rows = [dict(explorer={}, rehearsals=0, ready=True, success=1.0, success_if_used=1.0, samples=3000),
-            dict(explorer={}, rehearsals=0, ready=False, success=0.0, success_if_used=0.6, samples=12000),
-            dict(explorer={'excursion_share': 0.3}, rehearsals=0, ready=True, success=0.9, success_if_used=0.9,
+    """Layouts tuned in parallel processes print rows; `--rows` merges them and ranks the settings (exploration
+    budget, explorer, rehearsals) by mean success over every cell, a model that is not ready counting 0."""
+    rows = [dict(exploration_steps=3000, explorer={}, rehearsals=0, ready=True, success=1.0, success_if_used=1.0,
                  samples=3000),
-            dict(explorer={'excursion_share': 0.3}, rehearsals=0, ready=True, success=0.95, success_if_used=0.95,
-                 samples=4000),
-            dict(explorer={'excursion_share': 0.3}, rehearsals=3, ready=True, success=0.7, success_if_used=0.7,
-                 samples=5000)]
+            dict(exploration_steps=3000, explorer={}, rehearsals=0, ready=False, success=0.0, success_if_used=0.6,
+                 samples=12000),
+            dict(exploration_steps=3000, explorer={'excursion_share': 0.3}, rehearsals=0, ready=True, success=0.9,
+                 success_if_used=0.9, samples=3000),
+            dict(exploration_steps=3000, explorer={'excursion_share': 0.3}, rehearsals=0, ready=True, success=0.95,
+                 success_if_used=0.95, samples=4000),
+            dict(exploration_steps=3000, explorer={'excursion_share': 0.3}, rehearsals=3, ready=True, success=0.7,
+                 success_if_used=0.7, samples=5000),
+            dict(exploration_steps=2000, explorer={}, rehearsals=0, ready=True, success=0.2, success_if_used=0.2,
+                 samples=2000)]
     first, second = tmp_path / 'paper.jsonl', tmp_path / 'overlap.jsonl'
     first.write_text('\n'.join(json.dumps(r) for r in rows[:3]) + '\nsetup: ready\n')
     second.write_text('\n'.join(json.dumps(r) for r in rows[3:]) + '\n')
@@ -85,9 +89,10 @@ def test_tuning_rows_of_several_runs_are_summarized_into_one_choice(tmp_path):
     assert tune_wall.main(['--rows', str(first), str(second), '--note', 'test', '--out', str(out)]) == 0
     result = json.loads(out.read_text())
     assert result['rows'] == rows and result['note'] == 'test'
-    best, rehearsed, other = result['summary']
-    assert best == dict(explorer={'excursion_share': 0.3}, rehearsals=0, model={}, cells=2, ready=2,
-                        mean_success=0.925, cells_at_095=1, ready_below_080=0, median_samples=3500.0)
-    assert other == dict(explorer={}, rehearsals=0, model={}, cells=2, ready=1, mean_success=0.5, cells_at_095=1,
-                         ready_below_080=0, median_samples=7500.0)
+    best, rehearsed, other, smaller_budget = result['summary']
+    assert best == dict(exploration_steps=3000, explorer={'excursion_share': 0.3}, rehearsals=0, model={}, cells=2,
+                        ready=2, mean_success=0.925, cells_at_095=1, ready_below_080=0, median_samples=3500.0)
+    assert other == dict(exploration_steps=3000, explorer={}, rehearsals=0, model={}, cells=2, ready=1,
+                         mean_success=0.5, cells_at_095=1, ready_below_080=0, median_samples=7500.0)
+    assert smaller_budget['exploration_steps'] == 2000 and smaller_budget['cells'] == 1
     assert rehearsed['rehearsals'] == 3 and rehearsed['ready_below_080'] == 1
