@@ -240,6 +240,32 @@ def test_a_model_that_has_not_seen_sensor2_is_refitted_after_more_samples(model_
             rig.ros.close()
 
 
+def test_a_fit_that_fails_without_a_model_is_announced_and_retried_after_more_samples():
+    """Explored without sensor 1 ever seeing the wall, the first fit fails. The controller waits for a model by then,
+    so the learner announces the failure on the model topic (no grid, not ready, the reason; SensorManifoldModel.msg)
+    and fits again after learn_after // 4 more samples, announcing again if it fails."""
+    rig = Rig({'learn_after': 100})
+    try:
+        rig.subscribe_model()
+        blind = [INF] * 5
+        for sec in range(1, 140):
+            rig.publish_step(sec, blind)
+            rig.wait_states(sec)
+            rig.command([1.0, 1.0])
+            assert rig.ros.spin_until(lambda: len(rig.node.assembler.commands_since_sample) == 1)
+            assert rig.ros.spin_until(lambda: rig.node.fitting is None, timeout=10)
+            rig.ros.spin_for(0.01)
+            if len(rig.models) == 2:
+                break
+        first, second = rig.models[:2]
+        assert first.format_version == ModelMsg.FORMAT_VERSION and first.grid_rows == first.grid_cols == 0
+        assert not first.ready and first.samples == 100 and 'fit failed' in first.readiness
+        assert 'sensor-1 samples' in first.readiness and not len(first.grid_nodes)
+        assert second.samples == 125 and 'fit failed' in second.readiness       # 100 // 4 more
+    finally:
+        rig.ros.close()
+
+
 @pytest.mark.parametrize('damage', ['truncated', 'garbage', 'other_dt'])
 def test_unusable_model_file_means_learning_anew(model_file, tmp_path, damage):
     path, _ = model_file

@@ -172,6 +172,24 @@ def test_a_model_that_has_not_seen_sensor2_sends_it_exploring_again(learned):
         rig.ros.close()
 
 
+def test_a_learner_that_could_not_fit_sends_it_exploring_again():
+    """A model message without a model (no grid, not ready: the learner's fit failed, SensorManifoldModel.msg) is no
+    malformed model: the controller, waiting in LEARNING, explores exploration_steps // 4 more with the reason."""
+    rig = Rig({'exploration_steps': 8, 'random_seed': 1})
+    try:
+        for k in range(1, 10):
+            rig.state(k, bumper=False)
+            assert rig.ros.spin_until(lambda: rig.phase() == 'LEARNING' or len(rig.commands) == k)
+        assert rig.phase() == 'LEARNING' and len(rig.commands) == 8
+        rig.model_pub.publish(ModelMsg(format_version=ModelMsg.FORMAT_VERSION, dt=0.05, samples=9, ready=False,
+                                       readiness='fit failed: only 0 sensor-1 samples: explore more'))
+        assert rig.ros.spin_until(lambda: rig.phase() == 'EXPLORING' and len(rig.commands) == 9)
+        assert 'only 0 sensor-1 samples' in rig.status[-1].detail and 'exploring 2 more' in rig.status[-1].detail
+        assert rig.node.rejected == 0
+    finally:
+        rig.ros.close()
+
+
 def test_at_the_exploration_cap_a_model_still_not_ready_ends_failed_with_the_reason(learned):
     """max_exploration_steps caps the exploration, extra exploration included: a model still not ready then is
     never acted on; the status says FAILED and why."""

@@ -12,7 +12,7 @@ from rclpy.serialization import deserialize_message, serialize_message
 
 from mm_bringup.wall_experiment import explore, model_message, sensor2_goal_reading
 from mm_manifold.sensor_manifold import SensorManifoldModel
-from mm_planner.wall_agent import Goal, Observation, WallAgent
+from mm_planner.wall_agent import FitFailure, Goal, Observation, WallAgent
 from mm_planner.wall_model import WallModel
 from mm_sim.wheeled_model import WheeledRobot
 
@@ -139,6 +139,35 @@ def test_agent_explores_on_while_the_model_is_not_ready_and_fails_at_the_cap(mod
     assert decision.phase_name == 'FAILED' and 'the cap' in decision.detail and 'held-out' in decision.detail
     decision = agent.step(Observation(goal=Goal(np.array([0.2, 0.2]), stamp=3)))
     assert decision.phase_name == 'FAILED' and 'not ready' in decision.detail
+
+
+def test_agent_explores_on_when_the_learner_could_not_fit_and_fails_at_the_cap():
+    """The learner announces a fit that failed (no model: e.g. too few sensor-1 samples). Waiting in LEARNING for a
+    model would wait for good (the learner refits only after more samples): the agent explores more, as for a model
+    that is not ready, and ends FAILED with the reason at its cap; announced while it still explores (the learner
+    fits one step before the agent's last), the failure is acted on when the exploration ends."""
+    agent = WallAgent(DT, exploration_steps=8, random_state=0, max_exploration_steps=12)
+    far = np.array([np.inf, np.inf, np.inf, np.inf, np.inf])
+    while agent.step(Observation(state=True, readings=far, learner_samples=agent.explored + 1)).command is not None:
+        pass
+    assert agent.phase == ControllerStatus.PHASE_LEARNING and agent.explored == 8
+    decision = agent.step(Observation(fit_failure=FitFailure('fit failed: only 0 sensor-1 samples: explore more', 8)))
+    assert decision.phase_name == 'EXPLORING' and 'only 0 sensor-1 samples' in decision.detail
+    assert 'exploring 2 more' in decision.detail
+    assert decision.command is not None                      # the state left unanswered gets its command
+    while agent.step(Observation(state=True, readings=far, learner_samples=agent.explored + 1)).command is not None:
+        pass
+    assert agent.phase == ControllerStatus.PHASE_LEARNING and agent.explored == 10
+    decision = agent.step(Observation(fit_failure=FitFailure('fit failed: only 3 sensor-1 samples: explore more', 10)))
+    assert decision.phase_name == 'EXPLORING' and agent.explored == 11      # 2 more: the state's answer was one
+    # the learner holds one sample more than steps explored and fits before the agent's last step: set aside
+    decision = agent.step(Observation(fit_failure=FitFailure('fit failed: only 5 sensor-1 samples: explore more', 12)))
+    assert decision.phase_name == 'EXPLORING'
+    assert agent.step(Observation(state=True, readings=far, learner_samples=agent.explored + 1)).command is not None
+    assert agent.explored == 12
+    decision = agent.step(Observation(state=True, readings=far, learner_samples=agent.explored + 1))
+    assert decision.command is None
+    assert decision.phase_name == 'FAILED' and 'the cap' in decision.detail and 'only 5 sensor-1' in decision.detail
 
 
 def test_agent_never_commands_non_finite_and_reports_its_phases(model):

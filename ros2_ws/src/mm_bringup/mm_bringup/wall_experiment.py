@@ -21,7 +21,7 @@ from mm_common.wheeled_sensors import SENSOR2
 from mm_manifold.sensor_manifold import SensorManifoldModel, StateTracker
 from mm_msgs.msg import ControllerStatus
 from mm_planner.switching_controller import SPACE_SENSOR2
-from mm_planner.wall_agent import Goal, Observation, WallAgent
+from mm_planner.wall_agent import FitFailure, Goal, Observation, WallAgent
 from mm_planner.wall_model import WallModel
 from mm_sim.wheeled_model import ProximitySensor, WheeledRobot, default_sensors, wall_relative_state
 
@@ -156,8 +156,8 @@ def learn(robot: WheeledRobot, exploration_steps: int, dt: float, random_state: 
     as in the graph; a rejected one sends the agent exploring again and the learner refits on everything it has,
     rehearsals included. Until the agent waits for a goal or gives up at its cap of `max_samples` explored steps
     (default 4 x exploration_steps, the node's default). `model_params` (SensorManifoldModel) and `explorer_params`
-    (RandomExplorer) are hyperparameters under test (mm_bringup.tune_wall); a fit that fails (too little data) ends
-    the loop without a model."""
+    (RandomExplorer) are hyperparameters under test (mm_bringup.tune_wall); a fit that fails (too little data) is
+    announced to the agent as sensor_manifold announces it, and the agent explores more or ends at its cap."""
     max_samples = max_samples or 4 * exploration_steps
     # the cap is the agent's own (the controller node's max_exploration_steps): it stops exploring, not the fit of
     # what was explored, and ends FAILED with the reason
@@ -173,12 +173,15 @@ def learn(robot: WheeledRobot, exploration_steps: int, dt: float, random_state: 
             continuous = np.ones(len(R), dtype=bool)
             continuous[-1:] = False
             try:
-                model = SensorManifoldModel(dt, **(model_params or {})).fit(np.array(R), np.array(U), continuous)
+                fitted = SensorManifoldModel(dt, **(model_params or {})).fit(np.array(R), np.array(U), continuous)
             except ValueError as exc:
-                return Learned(None, len(R), f'fit failed: {exc}', model, agent.explored)
-            tracker = StateTracker(model)          # the learner tracks every later sample with its newest model
-            # The agent answers the state it left unanswered (exploring again, or rehearsing).
-            u = agent.step(Observation(model=agent_model(robot, model))).command
+                # as sensor_manifold announces it: the agent explores more (or ends FAILED at its cap)
+                u = agent.step(Observation(fit_failure=FitFailure(f'fit failed: {exc}', len(R)))).command
+            else:
+                model = fitted
+                tracker = StateTracker(model)      # the learner tracks every later sample with its newest model
+                # The agent answers the state it left unanswered (exploring again, or rehearsing).
+                u = agent.step(Observation(model=agent_model(robot, model))).command
         else:
             r = robot.read(pose)
             state = Observation(state=True, stamp=len(R), readings=r, bumped=bumped, learner_samples=len(R) + 1)

@@ -57,14 +57,14 @@ def test_learning_loop_takes_the_hyperparameters_under_test():
         learn(robot, 100, dt, random_state=100, explorer_params={'repeat_probabilty': 0.5})
     learned = learn(robot, 400, dt, random_state=100, max_samples=500, explorer_params={'repeat_probability': 0.5})
     assert learned.samples <= 500
-    assert learned.fitted is not None or learned.detail.startswith('fit failed')
+    assert learned.fitted is not None or 'fit failed' in learned.detail
     if learned.model is not None:
         assert learned.model is learned.fitted and learned.model.ready
     # a cap equal to the budget stops exploring, not the fit of what was explored (it once returned no fit at all)
     capped = learn(robot, 300, dt, random_state=101, max_samples=300)
     assert capped.samples == 300
-    assert capped.fitted is not None or capped.detail.startswith('fit failed'), capped.detail
-    assert capped.model is not None or 'the cap' in capped.detail or capped.detail.startswith('fit failed')
+    assert capped.fitted is not None or 'fit failed' in capped.detail, capped.detail
+    assert capped.model is not None or 'the cap' in capped.detail
 
 
 def test_tuning_rows_of_several_runs_are_summarized_into_one_choice(tmp_path):

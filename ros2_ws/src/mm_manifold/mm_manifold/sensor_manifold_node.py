@@ -124,6 +124,7 @@ class SensorManifold(Node):
         self.fit_result: List = []                # written once by the fitting thread, read after it ended
         self.fitted_samples = 0
         self.live_rejected = False                # the controller's rehearsals with the live model failed
+        self.fit_failed = False                   # the last fit without a live model raised (announced as such)
 
         self.state_pub = self.create_publisher(ManifoldState, 'wheeled/manifold/state', LOOP_QOS)
         self.jacobian_pub = self.create_publisher(JacobianEstimate, 'wheeled/manifold/jacobian', LOOP_QOS)
@@ -237,6 +238,16 @@ class SensorManifold(Node):
         self.model_pub.publish(msg)
         self.model_published = True
 
+    def _publish_fit_failure(self, reason: str) -> None:
+        """A model message without a model (no grid, not ready; SensorManifoldModel.msg): what was explored could not
+        be fitted, and why. Only while no model is live: the latched topic keeps the last usable model otherwise."""
+        msg = ModelMsg(format_version=ModelMsg.FORMAT_VERSION, dt=self.dt, samples=self.fitted_samples, ready=False,
+                       readiness=f'fit failed: {reason}'[:300], heldout_sensor2_error=math.inf,
+                       heldout_reentry_error=math.nan, heldout_limit=0.0)
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = 'base_link'
+        self.model_pub.publish(msg)
+
     def _start_fit(self) -> None:
         R = np.array(self.readings)
         U = np.array(self.commands + [np.zeros(2)])
@@ -279,8 +290,16 @@ class SensorManifold(Node):
         m, problem, unsaved = (self.fit_result[0] if self.fit_result
                                else (None, 'the fitting thread ended without a result', None))
         if m is None:
-            self.get_logger().error(f'fit failed: {problem}; will retry with more samples')
-            self.fitted_samples = len(self.readings) - self.learn_after // 2
+            if self.model is None:
+                # The controller waits for a model once it has explored: tell it that none could be fitted, so it
+                # explores `learn_after // 4` more (as for a model that is not ready) instead of waiting for good.
+                self.get_logger().error(f'fit failed on {self.fitted_samples} samples: {problem}; refitting after '
+                                        f'{max(self.learn_after // 4, 1)} more samples')
+                self.fit_failed = True
+                self._publish_fit_failure(problem)
+            else:
+                self.get_logger().error(f'refit failed: {problem}; the live model is kept, retrying with more samples')
+                self.fitted_samples = len(self.readings) - self.learn_after // 2
             return
         if problem is not None:
             self.get_logger().warn(f'refit on {m.n_samples_} samples not used, the live model is kept: {problem}')
@@ -289,7 +308,7 @@ class SensorManifold(Node):
             self.get_logger().error(f'could not save the model to {self.model_path} ({unsaved}); it is used from '
                                     'memory and lost on a restart')
         self.live_fitted_on = m.n_samples_
-        self.live_rejected = False
+        self.live_rejected = self.fit_failed = False
         self._install(m)
         self.get_logger().info(
             f'model {"ready" if m.ready else "fitted"}: dimension {m.dimension_}, grid residual '
@@ -392,10 +411,11 @@ class SensorManifold(Node):
 
     def _fit_if_due(self) -> None:
         """Start a fit when one is due: the first after `learn_after` samples, then every `refit_every`, and after
-        `learn_after // 4` more when the live model is not ready or was rejected."""
+        `learn_after // 4` more when the live model is not ready or was rejected, or when no model could be fitted."""
         n = len(self.readings)
         more = n - self.fitted_samples
-        if self.fitting is None and ((self.model is None and n >= self.learn_after and more > 0)
+        after_failure = max(self.learn_after // 4, 1) if self.fit_failed else 1
+        if self.fitting is None and ((self.model is None and n >= self.learn_after and more >= after_failure)
                                      or (self.model is not None and self.refit_every and more >= self.refit_every)
                                      or (self.model is not None and (not self.model.ready or self.live_rejected)
                                          and more >= max(self.learn_after // 4, 1))):

@@ -31,7 +31,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Bool, Float64MultiArray
 
 from mm_planner.exploration import RandomExplorer
-from mm_planner.wall_agent import Decision, Goal, Observation, WallAgent
+from mm_planner.wall_agent import Decision, FitFailure, Goal, Observation, WallAgent
 from mm_planner.wall_model import WallModel
 
 # Goals, the model and the verdict on it are latched state (TRANSIENT_LOCAL, depth 1): a node started or restarted
@@ -154,6 +154,13 @@ class SwitchingControllerNode(Node):
 
     # --- inputs ---------------------------------------------------------------------------------------------------
     def _on_model(self, msg: ModelMsg) -> None:
+        no_model = msg.grid_rows == 0 and msg.grid_cols == 0 and not msg.ready
+        if no_model and msg.format_version == ModelMsg.FORMAT_VERSION:
+            # the learner could not fit what was explored (SensorManifoldModel.msg)
+            reason = msg.readiness[:300] or 'the learner could not fit a model (no reason given)'
+            self.get_logger().warn(f'no model from {msg.samples} samples: {reason}')
+            self._publish(self.agent.step(Observation(fit_failure=FitFailure(reason, int(msg.samples)))))
+            return
         try:
             model = WallModel.from_msg(msg)
             if not math.isclose(model.dt, self.dt):

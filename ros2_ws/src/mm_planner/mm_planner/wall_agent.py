@@ -26,7 +26,7 @@ from __future__ import annotations
 import inspect
 import math
 from dataclasses import dataclass, field
-from typing import Any, List, Optional, Tuple
+from typing import Any, List, Optional, Tuple, Union
 
 import numpy as np
 from mm_msgs.msg import ControllerStatus, ManifoldState
@@ -63,7 +63,15 @@ class Observation:
     learner_samples: Optional[int] = None          # samples the learner holds (None: unknown)
     bumped: bool = False
     model: Optional[WallModel] = None
+    fit_failure: Optional['FitFailure'] = None      # the learner could not fit a model on what was explored
     goal: Optional[Goal] = None
+
+
+@dataclass
+class FitFailure:
+    """The learner announced that it could not fit a model on `samples` samples, and why."""
+    reason: str
+    samples: int
 
 
 @dataclass
@@ -149,7 +157,7 @@ class WallAgent:
         self.exploration_budget = exploration_steps     # grows when the learned model is not ready
         self.learner_lost = 0                           # samples the learner lost (restarts) and were made up for
         self.pending: Optional[Observation] = None       # the newest state not answered with a command yet
-        self.set_aside: Optional[WallModel] = None      # a not-ready model that came while exploring
+        self.set_aside: Optional[Union[WallModel, FitFailure]] = None   # a not-ready model (or none) while exploring
         self.reach_steps = 0
         self.detail = 'started'
         self._log: List[str] = []
@@ -166,6 +174,8 @@ class WallAgent:
         accepted, reason = None, ''
         if observation.model is not None:
             self._take_model(observation.model)
+        if observation.fit_failure is not None:
+            self._take_fit_failure(observation.fit_failure)
         if observation.goal is not None:
             accepted, reason = self._take_goal(observation.goal)
         state = observation if observation.state else self.pending
@@ -186,6 +196,24 @@ class WallAgent:
             self.phase, self.phase_step = phase, 0
         self.detail = detail
 
+    def _explore_more(self, why: str, why_at_cap: str) -> None:
+        """No usable model yet (not ready, or none could be fitted): explore `exploration_steps // 4` more, or end
+        FAILED with the reason at the cap."""
+        extra = min(max(self.exploration_steps // 4, 1), self.max_exploration_steps - self.explored)
+        if extra <= 0:
+            self._set_phase(ControllerStatus.PHASE_FAILED, f'model not ready after {self.explored} exploration steps '
+                            f'(the cap): {why_at_cap}')
+            return
+        self.exploration_budget = self.explored + extra
+        self._set_phase(ControllerStatus.PHASE_EXPLORING, f'model not ready ({why}): exploring {extra} more steps')
+
+    def _take_fit_failure(self, failure: FitFailure) -> None:
+        """As a model that is not ready: explore more (set aside while exploring, like such a model)."""
+        if self.phase == ControllerStatus.PHASE_EXPLORING:
+            self.set_aside = failure
+        elif self.phase == ControllerStatus.PHASE_LEARNING:
+            self._explore_more(failure.reason, failure.reason)
+
     def _take_model(self, model: WallModel) -> None:
         self.model = model
         if not model.ready:
@@ -193,15 +221,8 @@ class WallAgent:
             # ends if it was fitted on all of it (see _answer).
             self.set_aside = model if self.phase == ControllerStatus.PHASE_EXPLORING else None
             if self.phase == ControllerStatus.PHASE_LEARNING:
-                extra = min(max(self.exploration_steps // 4, 1), self.max_exploration_steps - self.explored)
-                if extra <= 0:
-                    self._set_phase(ControllerStatus.PHASE_FAILED, f'model not ready after {self.explored} '
-                                    f'exploration steps (the cap): {model.readiness}')
-                    return
-                self.exploration_budget = self.explored + extra
-                self._set_phase(ControllerStatus.PHASE_EXPLORING, f'model not ready ({model.readiness}; held-out '
-                                f'sensor-2 error {model.heldout_sensor2_error:.4f} m, bound {model.heldout_limit:.4f}'
-                                f' m): exploring {extra} more steps')
+                self._explore_more(f'{model.readiness}; held-out sensor-2 error {model.heldout_sensor2_error:.4f} m, '
+                                   f'bound {model.heldout_limit:.4f} m', model.readiness)
         elif self.phase in (ControllerStatus.PHASE_LEARNING, ControllerStatus.PHASE_EXPLORING,
                             ControllerStatus.PHASE_REHEARSING):
             skipped = self.phase == ControllerStatus.PHASE_EXPLORING and self.explored < self.exploration_budget
@@ -304,7 +325,10 @@ class WallAgent:
                 # samples as steps explored, the reading before the first command included, while the last
                 # step can be held up, e.g. by a restarting simulator); it fits again only after more samples,
                 # so waiting for another model would stall the loop for good.
-                self._take_model(early)
+                if isinstance(early, FitFailure):
+                    self._take_fit_failure(early)
+                else:
+                    self._take_model(early)
         if self.phase == ControllerStatus.PHASE_EXPLORING:
             command = self.explorer.command(state.readings, state.bumped)
             self.explored += 1
