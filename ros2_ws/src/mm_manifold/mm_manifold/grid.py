@@ -12,7 +12,8 @@ from __future__ import annotations
 from typing import Optional, Tuple
 
 import numpy as np
-from numba import njit
+
+from mm_manifold.compiled import compiled
 
 
 class ElasticGrid:
@@ -170,7 +171,7 @@ class ElasticGrid:
         return np.linalg.norm(X - self.inverse_transform(self.transform(X)), axis=1)
 
 
-@njit(cache=True, error_model='numpy')
+@compiled
 def _project(X, nodes, mean, axes, extent, n_newton):
     """ElasticGrid.transform's Gauss-Newton projection, one reading at a time: the state trackers call it on every
     sample, where numpy's per-call overhead on (1, 3) arrays cost ~0.5 ms. numpy's error model: a division by zero

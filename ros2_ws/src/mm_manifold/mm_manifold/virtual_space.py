@@ -15,9 +15,9 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 from mm_common.learned_fields import deeper_fallbacks, monomials, polynomial_features, ranked_routes
-from numba import njit
 from scipy.optimize import least_squares
 
+from mm_manifold.compiled import compiled
 from mm_manifold.jacobian import PolynomialJacobianField
 
 
@@ -70,7 +70,7 @@ def _basis_tables(degree: int, dim: int) -> Tuple[np.ndarray, np.ndarray]:
     return table, np.array(terms, dtype=np.int64).reshape(-1, 3 + max(degree, 1))
 
 
-@njit(cache=True, error_model='numpy')
+@compiled
 def _product(z, variables, start):
     """Product of z over the indices in variables[start:] up to the first -1, left to right (1 if none), as
     learned_fields._product multiplies them."""
@@ -85,7 +85,7 @@ def _product(z, variables, start):
     return value
 
 
-@njit(cache=True, error_model='numpy')
+@compiled
 def _euler_step(y, u, theta, correction, center, scale, table, dt, lo, hi, P, z, y_next):
     """One Euler step y + (J_in(y) + C(y)) u dt, clipped to [lo, hi]; leaves the features in P, the standardised
     y in z and the unclipped step in y_next; y itself is updated in place."""
@@ -107,7 +107,7 @@ def _euler_step(y, u, theta, correction, center, scale, table, dt, lo, hi, P, z,
         y[i] = min(max(y_next[i], lo[i]), hi[i])
 
 
-@njit(cache=True, error_model='numpy')
+@compiled
 def _active_steps(commands, e):
     """Steps of excursion e up to its last nonzero command: the zero padding after it moves nothing (J 0 = 0)."""
     for t in range(commands.shape[1] - 1, -1, -1):
@@ -117,7 +117,7 @@ def _active_steps(commands, e):
     return 0
 
 
-@njit(cache=True, error_model='numpy')
+@compiled
 def _integrate(starts, commands, theta, correction, center, scale, table, dt, lo, hi):
     E, T = commands.shape[0], commands.shape[1]
     dy = starts.shape[1]
@@ -137,7 +137,7 @@ def _integrate(starts, commands, theta, correction, center, scale, table, dt, lo
     return traj
 
 
-@njit(cache=True, error_model='numpy')
+@compiled
 def _sensitivity(starts, commands, theta, correction, center, scale, table, gradient, dt, lo, hi):
     E, T, du = commands.shape
     dy = starts.shape[1]
