@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from mm_bringup import tune_wall
-from mm_bringup.bench.wall_task import PAPER_GOAL_POSES, bench_cells, graph_seeds, matrix_cells, summarise
+from mm_bringup.bench.wall_task import (PAPER_GOAL_POSES, PRECISION_TOLERANCE, bench_cells, graph_seeds, matrix_cells,
+                                        precision_cells, result_json, summarise)
 from mm_bringup.wall_experiment import layout_robot, learn, sensor2_goal_reading
 from mm_bringup.wall_graph import GraphEpisode
 from mm_planner.switching_controller import SwitchingController
@@ -39,6 +40,19 @@ def test_cells_and_summaries():
     s = summarise(episodes)
     assert s['success_rate'] == 0.5 and s['median_path_ratio'] == 1.2 and s['longest_blind_steps_max'] == 90
     assert s['share_longest_blind_over_2x_predicted'] == 0.5 and s['failures'][0]['task'] == 1
+
+
+def test_precision_cells_are_the_headline_cells_at_2_mm_and_kept_apart():
+    """Issue 11, item 4 is measured on the headline's own cells (paper, default robot, 3 000 steps, clean), scored
+    at 2 mm, and reported beside the matrix (not mixed into its 10 mm cells)."""
+    assert PRECISION_TOLERANCE == 0.002
+    assert precision_cells((1000, 1001)) == [('paper', 'default', 1000, 3000, False),
+                                              ('paper', 'default', 1001, 3000, False)]
+    cells = [{'exploration_seed': 1000, 'success_rate': 0.9}, {'exploration_seed': 1001, 'success_rate': 1.0}]
+    out = result_json({}, [], 40, complete=False, precision=cells)
+    assert out['precision']['success_rate_min'] == 0.9 and out['precision']['tolerance_m'] == PRECISION_TOLERANCE
+    assert out['precision']['seeds'] == [1000, 1001] and out['matrix']['cells'] == []
+    assert 'precision' not in result_json({}, [], 40, complete=False)
 
 
 def test_the_paper_task_goal_is_seen_by_sensor2_alone_on_each_layout():
