@@ -158,7 +158,7 @@ class SwitchingControllerNode(Node):
         if no_model and msg.format_version == ModelMsg.FORMAT_VERSION:
             # the learner could not fit what was explored (SensorManifoldModel.msg)
             reason = msg.readiness[:300] or 'the learner could not fit a model (no reason given)'
-            self.get_logger().warn(f'no model from {msg.samples} samples: {reason}')
+            self.get_logger().warn(f'no model from {msg.samples} samples: {reason}', throttle_duration_sec=1.0)
             self._publish(self.agent.step(Observation(fit_failure=FitFailure(reason, int(msg.samples)))))
             return
         try:
