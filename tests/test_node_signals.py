@@ -32,7 +32,8 @@ def _signal_cycles(graph: ProcessGraph, ros: RosHarness, package: str, executabl
     for cycle, sig in enumerate(SIGNALS):
         # Let it work a varying while: some signals land during start-up work, some mid-loop.
         time.sleep(rng.uniform(0.05, 0.5))
-        if node.process.poll() is not None:
+        rc, log = node.process.poll(), ''
+        if rc is not None:
             failures.append(f'{executable}: died before signal {cycle} with {node.process.returncode}:\n'
                             f'{graph.log_tail(node)}')
         else:
@@ -50,7 +51,12 @@ def _signal_cycles(graph: ProcessGraph, ros: RosHarness, package: str, executabl
         node.log_path.rename(node.log_path.with_name(f'{executable}.{cycle}.log'))
         # Signals before the node's Python imports are done keep Python's defaults (run_node is not running yet):
         # restart only once the old node has left the graph, and signal only once the new one is on it.
-        wait_for(lambda: executable not in ros.nodes[0].get_node_names(), 30.0, message=f'{executable} to leave')
+        try:
+            wait_for(lambda: executable not in ros.nodes[0].get_node_names(), 30.0, message=f'{executable} to leave')
+        except TimeoutError:
+            # a node that exited without leaving the graph (or hung and was killed): say how it ended
+            pytest.fail(f'{executable} still on the graph 30 s after {signal.Signals(sig).name} #{cycle} (exit status '
+                        f'{rc}); failures so far: {failures}; its log:\n{log[-1500:]}')
         node = graph.start(package, executable, parameters)
         wait_for(lambda: executable in ros.nodes[0].get_node_names() or node.process.poll() is not None, 30.0,
                  message=f'{executable} to restart')
