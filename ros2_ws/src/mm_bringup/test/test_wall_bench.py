@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from mm_bringup import tune_wall
-from mm_bringup.bench.wall_task import (PAPER_GOAL_POSES, PRECISION_TOLERANCE, bench_cells, graph_seeds, matrix_cells,
-                                        precision_cells, result_json, summarise)
+from mm_bringup.bench.wall_task import (PAPER_GOAL_POSES, PRECISION_TOLERANCE, bench_cells, cell_key, graph_seeds,
+                                        matrix_cells, merged_cells, precision_cells, result_json, summarise)
 from mm_bringup.wall_experiment import layout_robot, learn, sensor2_goal_reading
 from mm_bringup.wall_graph import GraphEpisode
 from mm_planner.switching_controller import SwitchingController
@@ -53,6 +53,24 @@ def test_precision_cells_are_the_headline_cells_at_2_mm_and_kept_apart():
     assert out['precision']['success_rate_min'] == 0.9 and out['precision']['tolerance_m'] == PRECISION_TOLERANCE
     assert out['precision']['seeds'] == [1000, 1001] and out['matrix']['cells'] == []
     assert 'precision' not in result_json({}, [], 40, complete=False)
+
+
+def test_make_bench_keeps_the_matrix_cells_it_did_not_measure_again(tmp_path):
+    """`make bench` measures 26 of the 90 cells: the others of the previous results file (from `--matrix`) stay, each
+    new cell replacing its old one and saying which code measured it."""
+    def cell(key, rate, **extra):
+        layout, robot, seed, budget, noisy = key
+        return dict(layout=layout, robot=robot, exploration_seed=seed, exploration_budget=budget, noisy=noisy,
+                    success_rate=rate, **extra)
+    full = matrix_cells((1000, 1001), (3000,))
+    previous = tmp_path / 'wall_task.json'
+    previous.write_text(json.dumps({'matrix': {'cells': [cell(k, 0.5) for k in full]}}))
+    fresh = [cell(full[0], 1.0, measured_at='abc1234'), cell(full[3], 0.9, measured_at='abc1234')]
+    merged, kept = merged_cells(previous, fresh)
+    assert kept == len(full) - 2 and len(merged) == len(full) and merged[:2] == fresh
+    assert {cell_key(c) for c in merged} == set(full)
+    assert [c['success_rate'] for c in merged if cell_key(c) == full[3]] == [0.9]
+    assert merged_cells(tmp_path / 'none.json', fresh) == (fresh, 0)
 
 
 def test_the_paper_task_goal_is_seen_by_sensor2_alone_on_each_layout():

@@ -3,6 +3,7 @@
 
 import json
 import os
+import subprocess
 from pathlib import Path
 
 PARTS = ('graph_bench', 'wall_task', 'arm_task', 'arm_reach')
@@ -15,3 +16,16 @@ def write_json(path: Path, data: dict, sort_keys: bool = True) -> None:
     tmp = path.with_suffix('.json.tmp')
     tmp.write_text(json.dumps(data, indent=2, sort_keys=sort_keys) + '\n')
     os.replace(tmp, path)
+
+
+def code_version() -> dict:
+    """The commit the figures belong to, and whether the tracked files differed from it ('' when not in git)."""
+    here = Path(__file__).resolve().parent
+    try:
+        commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True, text=True, cwd=here,
+                                timeout=10).stdout.strip()
+        dirty = subprocess.run(['git', 'status', '--porcelain', '--untracked-files=no'], capture_output=True,
+                               text=True, cwd=here, timeout=10).stdout.strip() != ''
+    except (OSError, subprocess.SubprocessError):
+        commit, dirty = '', False
+    return {'git_commit': commit, 'git_dirty': dirty}

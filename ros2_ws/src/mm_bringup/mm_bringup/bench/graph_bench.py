@@ -9,7 +9,6 @@ from __future__ import annotations
 import math
 import os
 import shutil
-import subprocess
 import time
 from pathlib import Path
 
@@ -20,6 +19,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, Range
 from std_msgs.msg import Float64MultiArray, Header
 
+from mm_bringup.bench import code_version
 from mm_bringup.process_graph import ProcessGraph, wait_for
 from mm_bringup.wall_experiment import PAPER_START, explore, run_episode, sensor2_goal_reading
 from mm_bringup.wall_graph import WallGraph
@@ -246,18 +246,11 @@ def machine_load() -> dict:
     """What else the machine did: load averages, and the versions and commit the figures belong to."""
     import rclpy
     try:
-        commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True, text=True,
-                                cwd=Path(__file__).resolve().parent, timeout=10).stdout.strip()
-        dirty = subprocess.run(['git', 'status', '--porcelain', '--untracked-files=no'], capture_output=True,
-                               text=True, cwd=Path(__file__).resolve().parent, timeout=10).stdout.strip() != ''
-    except (OSError, subprocess.SubprocessError):
-        commit, dirty = '', False
-    try:
         from importlib.metadata import version
         rclpy_version = version('rclpy')
     except Exception:                 # rclpy from a ROS install has no distribution metadata
         rclpy_version = getattr(rclpy, '__version__', 'unknown')
-    return {'git_commit': commit, 'git_dirty': dirty, 'rclpy_version': rclpy_version}
+    return {**code_version(), 'rclpy_version': rclpy_version}
 
 
 def run(output_dir: Path, quick: bool) -> dict:

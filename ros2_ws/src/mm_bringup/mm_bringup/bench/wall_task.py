@@ -36,7 +36,7 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 
-from mm_bringup.bench import write_json
+from mm_bringup.bench import code_version, write_json
 from mm_bringup.wall_experiment import (PAPER_GOAL_POSES, PAPER_START, layout_file, layout_robot, learn,
                                         oracle_path_length, random_task, run_episode, sensor2_goal_reading,
                                         simulator_params_file)
@@ -160,12 +160,31 @@ def precision_cells(seeds=EXPLORATION_SEEDS) -> list:
     return [('paper', 'default', seed, 3000, False) for seed in seeds]
 
 
+def cell_key(cell: dict) -> tuple:
+    """A measured cell's place in matrix_cells()."""
+    return (cell['layout'], cell['robot'], cell['exploration_seed'], cell['exploration_budget'], cell['noisy'])
+
+
+def merged_cells(previous: Path, fresh: list) -> Tuple[list, int]:
+    """`fresh` cells and those of the matrix in the `previous` results file that `fresh` did not measure again (each
+    says when it was measured in `measured_at`, if it was recorded): `make bench` runs part of the matrix and must not
+    throw away the rest (`--matrix` ran). Returns the cells and how many were kept."""
+    old = json.loads(previous.read_text()) if previous.is_file() else {}
+    ran = {cell_key(c) for c in fresh}
+    kept = [c for c in old.get('matrix', {}).get('cells', []) if cell_key(c) not in ran]
+    return fresh + kept, len(kept)
+
+
 def run_matrix(cells, n_tasks: int, workers: int, on_cell=None, tolerance: float = TOLERANCE) -> list:
+    """run_cell on each cell, `workers` at a time; each result says which code measured it (`measured_at`: the
+    commit, '-dirty' when tracked files differed from it)."""
+    version = code_version()
+    measured_at = version['git_commit'] + ('-dirty' if version['git_dirty'] else '')
     results = []
     with ProcessPoolExecutor(max_workers=workers) as pool:
         futures = [pool.submit(run_cell, *cell, n_tasks, tolerance) for cell in cells]
         for future in futures:
-            results.append(future.result())
+            results.append({**future.result(), 'measured_at': measured_at})
             if on_cell:
                 on_cell(results)
     return results
@@ -255,12 +274,16 @@ def run(output_dir: Path, quick: bool, workers: int = 2) -> dict:
             more = EXPLORATION_SEEDS if budget == 3000 and not quick else ()
             for key, seed in graph_seeds(budget, more):
                 graph_cells[key] = run_graph_cell(Path(tmp) / key.replace('/', '_'), budget, seed, n_tasks)
-    matrix = run_matrix(bench_cells(quick), n_tasks, workers)
+    fresh = run_matrix(bench_cells(quick), n_tasks, workers)
     precision = run_matrix(precision_cells(EXPLORATION_SEEDS[:1] if quick else EXPLORATION_SEEDS), n_tasks, workers,
                            tolerance=PRECISION_TOLERANCE)
-    return result_json(graph_cells, matrix, n_tasks, complete=not quick,
-                       note='make bench cells: 5 seeds for paper/default, seed 1000 for the rest' if not quick else '',
-                       precision=precision)
+    if quick:                  # a smoke run of 10 tasks per cell is not mixed with the benchmark's 40-task cells
+        return result_json(graph_cells, fresh, n_tasks, complete=False, precision=precision)
+    matrix, kept = merged_cells(output_dir / f'{NAME}.json', fresh)
+    complete = {cell_key(c) for c in matrix} >= set(matrix_cells(EXPLORATION_SEEDS, BUDGETS))
+    return result_json(graph_cells, matrix, n_tasks, complete=complete, precision=precision,
+                       note=f'make bench measured {len(fresh)} cells at {fresh[0]["measured_at"]} (5 seeds for '
+                            f'paper/default, seed 1000 for the rest); {kept} cells kept from the earlier results file')
 
 
 def result_json(graph_cells: dict, matrix: list, n_tasks: int, complete: bool, note: str = '',
@@ -325,7 +348,7 @@ def main(argv=None) -> int:
         cells = matrix_cells(args.seeds, args.budgets, args.robots, args.layouts)
         if args.no_noisy:
             cells = [c for c in cells if not c[4]]
-        done = {(c['layout'], c['robot'], c['exploration_seed'], c['exploration_budget'], c['noisy']) for c in matrix}
+        done = {cell_key(c) for c in matrix}
         todo = [c for c in cells if c not in done]
         kept = list(matrix)
 
