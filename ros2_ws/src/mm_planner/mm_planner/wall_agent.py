@@ -196,16 +196,16 @@ class WallAgent:
             self.phase, self.phase_step = phase, 0
         self.detail = detail
 
-    def _explore_more(self, why: str, why_at_cap: str) -> None:
-        """No usable model yet (not ready, or none could be fitted): explore `exploration_steps // 4` more, or end
-        FAILED with the reason at the cap."""
+    def _explore_more(self, why: str, why_at_cap: str, what: str = 'not ready') -> None:
+        """No usable model yet (not ready, none could be fitted, or `what` = 'rejected' by a rehearsal): explore
+        `exploration_steps // 4` more, or end FAILED with the reason at the cap."""
         extra = min(max(self.exploration_steps // 4, 1), self.max_exploration_steps - self.explored)
         if extra <= 0:
-            self._set_phase(ControllerStatus.PHASE_FAILED, f'model not ready after {self.explored} exploration steps '
+            self._set_phase(ControllerStatus.PHASE_FAILED, f'model {what} after {self.explored} exploration steps '
                             f'(the cap): {why_at_cap}')
             return
         self.exploration_budget = self.explored + extra
-        self._set_phase(ControllerStatus.PHASE_EXPLORING, f'model not ready ({why}): exploring {extra} more steps')
+        self._set_phase(ControllerStatus.PHASE_EXPLORING, f'model {what} ({why}): exploring {extra} more steps')
 
     def _take_fit_failure(self, failure: FitFailure) -> None:
         """As a model that is not ready: explore more (set aside while exploring, like such a model)."""
@@ -412,14 +412,9 @@ class WallAgent:
         """A rehearsal failed: the model is not announced; explore more (within the cap) for the learner's refit."""
         model, self.rehearsal = self.rehearsal.model, None
         self.verdict = Verdict(model.samples, False, reason, state.learner_samples or 0)
-        extra = min(max(self.exploration_steps // 4, 1), self.max_exploration_steps - self.explored)
-        if extra <= 0:
-            self._set_phase(ControllerStatus.PHASE_FAILED, f'model rejected after {self.explored} exploration steps '
-                                                           f'(the cap): {reason}')
-            return None, math.nan, ()
-        self.exploration_budget = self.explored + extra
-        self._set_phase(ControllerStatus.PHASE_EXPLORING, f'model rejected ({reason}): exploring {extra} more steps')
-        return self._explore(state), math.nan, ()
+        self._explore_more(reason, reason, what='rejected')
+        command = self._explore(state) if self.phase == ControllerStatus.PHASE_EXPLORING else None
+        return command, math.nan, ()
 
     def _control(self, state: Observation, model: WallModel):
         """(command, error, target, outcome) of the controller on this state with `model`; outcome None while under
