@@ -90,6 +90,12 @@ class Rig:
         assert self.ros.spin_until(future.done, timeout=10)
         return future.result()
 
+    def explore(self, states):
+        """Send states 1..`states` (each with its bumper reading), each answered with a command until LEARNING."""
+        for k in range(1, states + 1):
+            self.state(k, bumper=False)
+            assert self.ros.spin_until(lambda: self.phase() == 'LEARNING' or len(self.commands) == k)
+
     def phase(self):
         return self.status[-1].phase_name if self.status else None
 
@@ -153,9 +159,7 @@ def test_a_model_that_has_not_seen_sensor2_sends_it_exploring_again(learned):
     msg, _ = learned
     rig = Rig({'exploration_steps': 8, 'random_seed': 1})
     try:
-        for k in range(1, 10):
-            rig.state(k, bumper=False)
-            assert rig.ros.spin_until(lambda: rig.phase() == 'LEARNING' or len(rig.commands) == k)
+        rig.explore(9)
         assert rig.phase() == 'LEARNING' and len(rig.commands) == 8
         rig.model_pub.publish(blind_message(msg))
         # Exploring again, and the state that was waiting is answered at once.
@@ -177,9 +181,7 @@ def test_a_learner_that_could_not_fit_sends_it_exploring_again():
     malformed model: the controller, waiting in LEARNING, explores exploration_steps // 4 more with the reason."""
     rig = Rig({'exploration_steps': 8, 'random_seed': 1})
     try:
-        for k in range(1, 10):
-            rig.state(k, bumper=False)
-            assert rig.ros.spin_until(lambda: rig.phase() == 'LEARNING' or len(rig.commands) == k)
+        rig.explore(9)
         assert rig.phase() == 'LEARNING' and len(rig.commands) == 8
         rig.model_pub.publish(ModelMsg(format_version=ModelMsg.FORMAT_VERSION, dt=0.05, samples=9, ready=False,
                                        readiness='fit failed: only 0 sensor-1 samples: explore more'))
@@ -196,9 +198,7 @@ def test_at_the_exploration_cap_a_model_still_not_ready_ends_failed_with_the_rea
     msg, _ = learned
     rig = Rig({'exploration_steps': 8, 'max_exploration_steps': 10, 'random_seed': 1})
     try:
-        for k in range(1, 10):
-            rig.state(k, bumper=False)
-            assert rig.ros.spin_until(lambda: rig.phase() == 'LEARNING' or len(rig.commands) == k)
+        rig.explore(9)
         rig.model_pub.publish(blind_message(msg))
         assert rig.ros.spin_until(lambda: rig.phase() == 'EXPLORING' and len(rig.commands) == 9)
         rig.state(10, bumper=False)
