@@ -512,6 +512,7 @@ def _ranges(k: int) -> list:
 def _manifold_state(k: int) -> ManifoldState:
     return ManifoldState(header=_header(k), active_space=ManifoldState.SPACE_NONE, coordinates=[],
                          sensor1=[0.5, 0.5, 0.5], sensor2=[math.inf, math.inf], sensor2_estimate=[],
+                         sensor1_range=[0.005, 1.5],
                          in_range=[True, True, True, False, False], model_ready=False, samples=k,
                          manifold_dimension=0)
 

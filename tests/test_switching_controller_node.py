@@ -25,6 +25,7 @@ QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 DT = 0.05
 INF = math.inf
+FRONT_RANGE = [0.005, 1.5]      # the front sensors' [min, max] range of these readings (wheeled_sim.yaml) [m]
 
 
 @pytest.fixture(scope='module')
@@ -76,7 +77,7 @@ class Rig:
     def state(self, sec, sensor1=(0.6, 0.5, 0.6), sensor2=(INF, INF), space=0, coordinates=(), bumper=None):
         """A state, and the step's bumper reading when given (the explorer waits for it, however long)."""
         msg = ManifoldState(sensor1=[float(v) for v in sensor1], sensor2=[float(v) for v in sensor2],
-                            in_range=[math.isfinite(v) for v in list(sensor1) + list(sensor2)],
+                            sensor1_range=FRONT_RANGE, in_range=[math.isfinite(v) for v in list(sensor1) + list(sensor2)],
                             active_space=space, coordinates=[float(v) for v in coordinates])
         msg.header.stamp.sec = sec
         self.state_pub.publish(msg)
@@ -299,13 +300,15 @@ def test_malformed_states_are_rejected_and_the_next_valid_one_answered(learned):
         cases = [dict(coordinates=[1.0, 2.0, 3.0]), dict(coordinates=[math.nan, 1.0]), dict(coordinates=[1e308, 0.0]),
                  dict(sensor1=[0.5, 0.5]), dict(sensor1=[-1.0, 0.5, 0.5]), dict(space=7),
                  dict(space=ManifoldState.SPACE_SENSOR2), dict(sec=2**31 - 1), dict(sec=sec - 5),
-                 dict(in_range=[True, False])]
+                 dict(in_range=[True, False]), dict(sensor1_range=[]), dict(sensor1_range=[1.5, 0.005]),
+                 dict(sensor1_range=[0.005, math.inf])]
         for k, case in enumerate(cases):
             before = rig.node.rejected
             state = ManifoldState(sensor1=[float(v) for v in case.get('sensor1', reading[:3])],
                                   sensor2=[float(v) for v in reading[3:]], active_space=case.get('space', 1),
                                   coordinates=[float(v) for v in case.get('coordinates', coordinates)],
-                                  in_range=case.get('in_range', []))
+                                  in_range=case.get('in_range', []),
+                                  sensor1_range=case.get('sensor1_range', FRONT_RANGE))
             state.header.stamp.sec = case.get('sec', sec + 1 + k)
             rig.state_pub.publish(state)
             assert rig.ros.spin_until(lambda: rig.node.rejected > before), case
@@ -407,7 +410,7 @@ def test_node_and_offline_runner_command_alike(learned):
             r = robot.read(pose)
             space, coords, s2, _ = tracker.update(r, last)
             state = ManifoldState(sensor1=[float(v) for v in r[:3]], sensor2=[float(v) for v in r[3:]],
-                                  active_space=space, coordinates=[] if coords is None else [float(v) for v in coords],
+                                  sensor1_range=FRONT_RANGE, active_space=space, coordinates=[] if coords is None else [float(v) for v in coords],
                                   sensor2_estimate=[] if s2 is None else [float(v) for v in s2])
             state.header.stamp.sec = k + 1
             rig.state_pub.publish(state)
@@ -420,7 +423,7 @@ def test_node_and_offline_runner_command_alike(learned):
         r = robot.read(pose)                                     # the final state: the goal is reached
         space, coords, s2, _ = tracker.update(r, last)
         state = ManifoldState(sensor1=[float(v) for v in r[:3]], sensor2=[float(v) for v in r[3:]],
-                              active_space=space, coordinates=[] if coords is None else [float(v) for v in coords],
+                              sensor1_range=FRONT_RANGE, active_space=space, coordinates=[] if coords is None else [float(v) for v in coords],
                               sensor2_estimate=[] if s2 is None else [float(v) for v in s2])
         state.header.stamp.sec = len(episode.commands) + 1
         rig.state_pub.publish(state)

@@ -14,6 +14,12 @@ of mm_sim/layouts, bench.wall_task.ROBOTS).
 
     ./mm python -m mm_bringup.tune_wall --seeds 100 101 102 103 104 --out results/tune_wall.json
 
+`--search` measures instead how soon the explorer's search finds the wall when it starts beyond its front sensors'
+range (RandomExplorer.search_growth, results/tune_wall_search.json):
+
+    ./mm python -m mm_bringup.tune_wall --search --robots front_0.75m --seeds 100 ... 119 \
+        --explorer '{"search_growth": 1.15}' '{"search_growth": 1.25}' '{"search_growth": 1.5}'
+
 Rows are printed as they come (one JSON object per line); `--rows` summarizes such output of several processes (for
 instance one per layout) into one file.
 """
@@ -31,9 +37,10 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from mm_bringup.bench import write_json
-from mm_bringup.bench.wall_task import ROBOTS
-from mm_bringup.wall_experiment import (layout_robot, learn, oracle_path_length, random_task, run_episode,
+from mm_bringup.bench.wall_task import ROBOTS, robot_variant
+from mm_bringup.wall_experiment import (PAPER_START, explore, learn, oracle_path_length, random_task, run_episode,
                                         sensor2_goal_reading, success)
+from mm_common.wheeled_sensors import SENSOR1
 from mm_sim.wheeled_model import WheeledRobot
 
 TUNING_SEEDS = tuple(range(100, 120))
@@ -70,10 +77,8 @@ def evaluate(robot: WheeledRobot, dt: float, model, tasks: int, tolerance: float
 def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, model_params=None,
              explorer_params=None, rehearsals=None) -> Dict:
     t0 = time.monotonic()
-    spec = ROBOTS[robot_name]
-    robot, dt = layout_robot(layout, spec['scale'])
-    dt = spec['dt'] or dt
-    learned = learn(robot, steps, dt, seed, max_samples=max_samples, model_params=model_params,
+    robot, dt, start = robot_variant(layout, robot_name)
+    learned = learn(robot, steps, dt, seed, start, max_samples=max_samples, model_params=model_params,
                     explorer_params=explorer_params, rehearsals=rehearsals)
     model, samples = learned.fitted, learned.samples
     # Tasks are run with the model even when it is not ready (as if announced anyway): success_if_used against the
@@ -91,6 +96,29 @@ def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, mod
                 overlap_samples=len(model.virtual_.overlap_sensor2_) if model is not None else 0, tolerance=tolerance,
                 success=rate if ready else 0.0, success_if_used=rate, median_path_ratio=ratio, median_error=err,
                 detail=learned.detail, seconds=round(time.monotonic() - t0, 1))
+
+
+def search_cell(layout, robot_name, seed, steps, explorer_params) -> Dict:
+    """Steps until sensor 1 first sees the wall when exploration starts at PAPER_START (1 m from the wall), where a
+    robot with short front sensors does not see it (RandomExplorer._search); None: not within `steps`."""
+    robot, dt, _ = robot_variant(layout, robot_name)
+    readings = explore(robot, steps, start=PAPER_START, random_state=seed, dt=dt,
+                       explorer_params=explorer_params).readings
+    seen = np.all(np.isfinite(readings[:, list(SENSOR1)]), axis=1)
+    return dict(layout=layout, robot=robot_name, seed=seed, steps=steps, explorer=explorer_params,
+                first_in_range=int(np.argmax(seen)) if seen.any() else None)
+
+
+def summarize_search(rows: List[Dict]) -> List[Dict]:
+    by_setting: Dict[str, List[Dict]] = {}
+    for row in rows:
+        by_setting.setdefault(json.dumps(row['explorer'], sort_keys=True), []).append(row)
+    summary = []
+    for key, cells in by_setting.items():
+        found = [r['first_in_range'] for r in cells if r['first_in_range'] is not None]
+        summary.append(dict(explorer=json.loads(key), cells=len(cells), found=len(found),
+                            median_steps_found=float(np.median(found)) if found else None))
+    return sorted(summary, key=lambda s: (-s['found'], s['median_steps_found'] or math.inf))
 
 
 def summarize(rows: List[Dict]) -> List[Dict]:
@@ -127,6 +155,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help='SensorManifoldModel hyperparameter sets to compare (e.g. {"heldout_bound": 1.0})')
     parser.add_argument('--rehearsals', nargs='+', type=int, default=[None],
                         help="WallAgent rehearsals to compare (default: the agent's own default)")
+    parser.add_argument('--search', action='store_true',
+                        help='measure only how soon sensor 1 first sees the wall from 1 m (with --robots front_0.75m '
+                        'it starts beyond its range), per --explorer set, within --steps')
     parser.add_argument('--rows', nargs='+', type=Path, default=None,
                         help='summarize rows printed by earlier runs (one JSON object per line) instead of running')
     parser.add_argument('--note', default='', help='what the output file should say about how it was made')
@@ -140,6 +171,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     if bad:
         parser.error(f'seeds {bad} are not tuning seeds ({TUNING_SEEDS[0]}-{TUNING_SEEDS[-1]})')
     rows = []
+    if args.search:
+        for layout in args.layouts:
+            for robot in args.robots:
+                for seed in args.seeds:
+                    for params in args.explorer:
+                        rows.append(search_cell(layout, robot, seed, args.steps, params))
+                        print(json.dumps(rows[-1]), flush=True)
+        return _write(args, rows, summarize_search(rows), 'most searches that found the wall, then fewest steps')
     for layout in args.layouts:
         for robot in args.robots:
             for seed in args.seeds:
@@ -155,13 +194,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     return _write(args, rows)
 
 
-def _write(args, rows: List[Dict]) -> int:
-    summary = summarize(rows)
+def _write(args, rows: List[Dict], summary: Optional[List[Dict]] = None,
+           choice_rule: str = 'highest mean success over every cell') -> int:
+    summary = summarize(rows) if summary is None else summary
     print(json.dumps(summary, indent=1))
     if args.out:
         write_json(args.out, dict(command=' '.join(['./mm python -m mm_bringup.tune_wall'] + sys.argv[1:]),
-                                  note=args.note, choice_rule='highest mean success over every cell',
-                                  summary=summary, rows=rows), sort_keys=False)
+                                  note=args.note, choice_rule=choice_rule, summary=summary, rows=rows),
+                   sort_keys=False)
     return 0
 
 

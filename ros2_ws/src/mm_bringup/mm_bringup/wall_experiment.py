@@ -17,7 +17,7 @@ import yaml
 from ament_index_python.packages import get_package_share_directory
 
 from mm_manifold.model_message import model_to_msg
-from mm_common.wheeled_sensors import SENSOR2
+from mm_common.wheeled_sensors import SENSOR1, SENSOR2
 from mm_manifold.sensor_manifold import SensorManifoldModel, StateTracker
 from mm_msgs.msg import ControllerStatus
 from mm_planner.switching_controller import SPACE_SENSOR2
@@ -67,16 +67,20 @@ def simulator_parameters(params_files: Sequence[Path]) -> dict:
     return merged
 
 
-def robot_from_params(params_files: Sequence[Path], scale: float = 1.0, **robot_kwargs) -> Tuple[WheeledRobot, float]:
+def robot_from_params(params_files: Sequence[Path], scale: float = 1.0, front_range: Optional[float] = None,
+                      **robot_kwargs) -> Tuple[WheeledRobot, float]:
     """(robot, dt) as wheeled_sim builds them from these parameter files; `scale` multiplies the wheel radius and
-    separation, the body radius and the sensor mounts (a larger robot of the same shape); `robot_kwargs` (noise,
-    dropout, random_state) go to WheeledRobot."""
+    separation, the body radius and the sensor mounts (a larger robot of the same shape); `front_range` [m], when
+    given, replaces the front (sensor-1) sensors' max range; `robot_kwargs` (noise, dropout, random_state) go to
+    WheeledRobot."""
     p = simulator_parameters(params_files)
     sensors = []
     for d in default_sensors():
         s = p.get('sensors', {}).get(d.name, {})
         x, y, yaw = s.get('mount', [d.x, d.y, math.degrees(d.yaw)])
         low, high = s.get('range', [d.min_range, d.max_range])
+        if front_range is not None and len(sensors) in SENSOR1:
+            high = front_range
         sensors.append(ProximitySensor(d.name, scale * x, scale * y, math.radians(yaw), low, high,
                                        s.get('field_of_view', d.field_of_view),
                                        math.radians(s.get('max_incidence_deg', math.degrees(d.max_incidence)))))
@@ -87,9 +91,10 @@ def robot_from_params(params_files: Sequence[Path], scale: float = 1.0, **robot_
     return robot, float(p.get('dt', 0.05))
 
 
-def layout_robot(layout: str, scale: float = 1.0, **robot_kwargs) -> Tuple[WheeledRobot, float]:
-    """(robot, dt) of wheeled_sim.yaml with a named sensor layout on top."""
-    return robot_from_params([simulator_params_file(), layout_file(layout)], scale, **robot_kwargs)
+def layout_robot(layout: str, scale: float = 1.0, front_range: Optional[float] = None,
+                 **robot_kwargs) -> Tuple[WheeledRobot, float]:
+    """(robot, dt) of wheeled_sim.yaml with a named sensor layout on top (robot_from_params for the rest)."""
+    return robot_from_params([simulator_params_file(), layout_file(layout)], scale, front_range, **robot_kwargs)
 
 
 @dataclass
@@ -100,11 +105,15 @@ class ExplorationLog:
     poses: np.ndarray
 
 
+def group_range(robot: WheeledRobot, group) -> np.ndarray:
+    """[min, max] every sensor of the group reads, as sensor_manifold takes it from their Range messages."""
+    limits = [robot.sensors[i] for i in group]
+    return np.array([max(s.min_range for s in limits), min(s.max_range for s in limits)])
+
+
 def model_message(robot: WheeledRobot, model: SensorManifoldModel):
-    """The learned model as the learner publishes it (sensor-2 range from the robot's sensors, as the learner takes
-    it from their Range messages)."""
-    limits = [robot.sensors[i] for i in SENSOR2]
-    return model_to_msg(model, [max(s.min_range for s in limits), min(s.max_range for s in limits)])
+    """The learned model as the learner publishes it (with sensor 2's range)."""
+    return model_to_msg(model, list(group_range(robot, SENSOR2)))
 
 
 def agent_model(robot: WheeledRobot, model: SensorManifoldModel) -> WallModel:
@@ -122,7 +131,8 @@ def explore(robot: WheeledRobot, steps: int, start=PAPER_START, random_state: in
     R, U, P = [], [], []
     for _ in range(steps):
         r = robot.read(pose)
-        u = agent.step(Observation(state=True, stamp=len(R), readings=r, bumped=bumped)).command
+        u = agent.step(Observation(state=True, stamp=len(R), readings=r, bumped=bumped,
+                                   sensor1_range=group_range(robot, SENSOR1))).command
         if u is None:
             break
         R.append(r)
@@ -184,7 +194,8 @@ def learn(robot: WheeledRobot, exploration_steps: int, dt: float, random_state: 
                 u = agent.step(Observation(model=agent_model(robot, model))).command
         else:
             r = robot.read(pose)
-            state = Observation(state=True, stamp=len(R), readings=r, bumped=bumped, learner_samples=len(R) + 1)
+            state = Observation(state=True, stamp=len(R), readings=r, bumped=bumped, learner_samples=len(R) + 1,
+                                sensor1_range=group_range(robot, SENSOR1))
             if tracker is not None:
                 state.space, state.coordinates, state.sensor2_estimate, _ = tracker.update(r, U[-1] if U else None)
             u = agent.step(state).command
@@ -250,7 +261,7 @@ def run_episode(robot: WheeledRobot, model: SensorManifoldModel, start, goal_rea
         ep.coordinates.append(None if coords is None else coords.copy())
         ep.readings.append(r)
         decision = agent.step(Observation(state=True, stamp=len(ep.poses) - 1, space=space, coordinates=coords,
-                                          sensor2_estimate=s2, readings=r))
+                                          sensor2_estimate=s2, readings=r, sensor1_range=group_range(robot, SENSOR1)))
         if decision.phase == ControllerStatus.PHASE_GOAL_REACHED:
             ep.reached = True
             break
@@ -294,7 +305,8 @@ def main(argv=None) -> int:
     import argparse
     import time
     parser = argparse.ArgumentParser(description='Section 2 offline: explore, learn, reach random goals (no ROS). '
-                                     'Use exploration and task seeds disjoint from the benchmark (its seeds: 1, 2).')
+                                     'Use exploration and task seeds disjoint from the benchmark (its exploration '
+                                     'seeds 1000-1004, task seeds 5000-5004).')
     parser.add_argument('--seed', type=int, default=3, help='exploration (and noise) seed')
     parser.add_argument('--steps', type=int, default=10000, help='exploration steps')
     parser.add_argument('--tasks', type=int, default=20, help='random tasks')

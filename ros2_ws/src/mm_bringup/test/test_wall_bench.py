@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from mm_bringup import tune_wall
-from mm_bringup.bench.wall_task import (PAPER_GOAL_POSES, PRECISION_TOLERANCE, bench_cells, cell_key, graph_seeds,
-                                        matrix_cells, merged_cells, precision_cells, result_json, summarise)
+from mm_bringup.bench.wall_task import (PAPER_GOAL_POSES, PRECISION_TOLERANCE, ROBOTS, bench_cells, cell_key,
+                                        graph_seeds, matrix_cells, merged_cells, precision_cells, result_json,
+                                        summarise)
 from mm_bringup.wall_experiment import layout_robot, learn, sensor2_goal_reading
 from mm_bringup.wall_graph import GraphEpisode
 from mm_planner.switching_controller import SwitchingController
@@ -26,7 +27,8 @@ def test_the_blind_report_of_the_status_detail_is_read_back():
 
 def test_cells_and_summaries():
     full = matrix_cells((1000, 1001, 1002, 1003, 1004), (3000, 10000))
-    assert len(full) == 2 * 3 * 5 * 2 + 3 * 5 * 2 and len(set(full)) == len(full)
+    robots = len(ROBOTS)                  # default, 1.5x, dt 0.1, front sensors of 0.75 m
+    assert robots == 4 and len(full) == 2 * robots * 5 * 2 + robots * 5 * 2 and len(set(full)) == len(full)
     cells = bench_cells(quick=False)
     assert len(set(cells)) == len(cells) and set(cells) <= set(full)
     assert sum(c[:2] == ('paper', 'default') and not c[4] for c in cells) == 10       # 5 seeds x 2 budgets

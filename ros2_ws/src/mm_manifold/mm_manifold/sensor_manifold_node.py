@@ -231,12 +231,16 @@ class SensorManifold(Node):
         against it."""
         if self.model is None or self.model_published or not all(i in self.sensor_limits for i in SENSOR2):
             return
-        limits = [self.sensor_limits[i] for i in SENSOR2]
-        msg = model_to_msg(self.model, [max(lo for lo, _ in limits), min(hi for _, hi in limits)])
+        msg = model_to_msg(self.model, self._group_range(SENSOR2))
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.header.frame_id = 'base_link'
         self.model_pub.publish(msg)
         self.model_published = True
+
+    def _group_range(self, group) -> list:
+        """[min, max] that every sensor of the group reads (their latest Range messages' limits)."""
+        limits = [self.sensor_limits[i] for i in group]
+        return [max(lo for lo, _ in limits), min(hi for _, hi in limits)]
 
     def _publish_fit_failure(self, reason: str) -> None:
         """A model message without a model (no grid, not ready; SensorManifoldModel.msg): what was explored could not
@@ -428,6 +432,7 @@ class SensorManifold(Node):
         msg.header.frame_id = 'base_link'
         msg.sensor1 = [float(v) for v in reading[list(SENSOR1)]]
         msg.sensor2 = [float(v) for v in reading[list(SENSOR2)]]
+        msg.sensor1_range = self._group_range(SENSOR1)      # a step is complete only with every sensor's reading
         msg.in_range = [bool(math.isfinite(v)) for v in reading]
         msg.samples = len(self.readings)
         msg.active_space = SPACE_NONE

@@ -8,7 +8,8 @@ A lost reading (NaN) is unknown, not out of range: the last valid value of that 
 inside sensor-1 range, a random rotation / run / rotation leaves the range (often into sensor 2's), then the robot
 undoes the segments in a different order, so it comes back near - not exactly at - where it left; if that does not
 bring sensor 1 back, it retraces every command since it left (differential drive is exactly reversible), which
-guarantees the return without any world model. An excursion that brought sensor 2 into range is remembered (its
+guarantees the return without any world model. A robot that starts where sensor 1 does not see the wall searches for
+it first (straight rays out and back, each longer than the last). An excursion that brought sensor 2 into range is remembered (its
 segments, in steps) and, with probability `repeat_probability`, a later excursion repeats one of those with each
 segment's length jittered: sensor 2's range may be a small target that random excursions rarely hit, and what reached
 it once reaches it again from a similar exit. Practice: while an excursion has sensor 2 in range, the robot now
@@ -23,6 +24,7 @@ space extrapolates worse away from the practised routes. The paper's undirected 
 """
 from __future__ import annotations
 
+import math
 from collections import deque
 from typing import Deque, List, Optional
 
@@ -36,22 +38,31 @@ UNDIRECTED = {'approach_probability': 0.0, 'excursion_share': 0.0}
 
 class RandomExplorer:
     """Hyperparameters: wheel speeds for turning and driving [rad/s], hold range of a random command [steps],
-    excursion probability per decision when the front-centre reading is below `excursion_below` [m], an excursion's
+    excursion probability per decision when the front-centre reading is below `excursion_below`, an excursion's
     first turn [steps, range], longest run and largest second turn [steps], repeat_probability and repeat_jitter
     (relative change of each segment's length) of a successful excursion, approach_probability (a new excursion
-    first drives closer to the wall), reflex distances [m], approach_bias (probability that a run in the middle of the front
-    range goes toward the wall), practice_probability (per step with sensor 2 in range during an excursion) and
-    practice_segments (random turn/drive segments per practice, each undone), excursion_share (excursions start,
-    when in range, while they have had fewer than this share of all steps), random_state."""
+    first drives closer to the wall), the reflex reading `near` and the edge of the front range `far`, approach_bias
+    (probability that a run with the front-centre reading between `back_off_below` and `far` goes toward the wall;
+    below `back_off_below` runs mostly back off, between it and `mid_range_above` either way),
+    practice_probability (per step with sensor 2 in range during an excursion) and practice_segments (random
+    turn/drive segments per practice, each undone), excursion_share (excursions start, when in range, while they
+    have had fewer than this share of all steps), search_growth (length ratio of successive search rays while
+    sensor 1 has never seen the wall, see _search), random_state.
+
+    Reading thresholds are fractions of the front sensors' max range, which `command` takes from their Range
+    messages: no sensor's range is built in. The defaults are the metre values the explorer was tuned with on the
+    1.5 m front sensors of wheeled_sim (0.08, 1.25, 0.6, 0.25 and 0.35 m), written as such fractions."""
 
     REFLEX_STEPS = 6        # steps of one reflex (back off, drive away from a contact, or turn when wedged)
 
     def __init__(self, turn_speed: float = 2.0, drive_speed: float = 5.0, hold_steps=(4, 25),
-                 excursion_probability: float = 0.3, excursion_below: float = 0.6, excursion_turn_steps=(7, 21),
+                 excursion_probability: float = 0.3, excursion_below: float = 0.6 / 1.5, excursion_turn_steps=(7, 21),
                  excursion_run_steps: int = 40, excursion_turn2_steps: int = 5, repeat_probability: float = 0.0,
-                 repeat_jitter: float = 0.2, approach_probability: float = 1.0, near: float = 0.08, far: float = 1.25,
+                 repeat_jitter: float = 0.2, approach_probability: float = 1.0, near: float = 0.08 / 1.5,
+                 far: float = 1.25 / 1.5, back_off_below: float = 0.25 / 1.5, mid_range_above: float = 0.35 / 1.5,
                  approach_bias: float = 0.55, max_retrace: int = 400, practice_probability: float = 0.15,
-                 practice_segments: int = 4, excursion_share: float = 0.3, random_state: Optional[int] = None):
+                 practice_segments: int = 4, excursion_share: float = 0.3, search_growth: float = 1.1,
+                 random_state: Optional[int] = None):
         self.turn_speed = turn_speed
         self.drive_speed = drive_speed
         self.hold_steps = hold_steps
@@ -70,11 +81,15 @@ class RandomExplorer:
         self.current_saw_sensor2 = False
         self.near = near
         self.far = far
+        self.back_off_below = back_off_below
+        self.mid_range_above = mid_range_above
+        self.front_range = math.nan               # the front sensors' max range [m] (command's argument)
         self.approach_bias = approach_bias
         self.max_retrace = max_retrace
         self.practice_probability = practice_probability
         self.practice_segments = practice_segments
         self.excursion_share = excursion_share
+        self.search_growth = search_growth
         self.steps_in_excursions = 0
         self.practice_left = 0
         self.rng = np.random.default_rng(random_state)
@@ -86,6 +101,8 @@ class RandomExplorer:
         self.last_command = np.zeros(2)
         self.steps = 0
         self.last_reflex_step = -10 ** 9
+        self.seen_sensor1 = False                 # sensor 1 has had the wall in range at least once
+        self.search_steps = 0                     # length of the last search ray [steps] (0: none yet)
         self.last_reflex_bumped = False
         self.wedge_turn = 0.0
 
@@ -103,11 +120,11 @@ class RandomExplorer:
         else:
             direction = 1.0
             if np.isfinite(centre):
-                if centre < 0.25:
+                if centre < self.back_off_below * self.front_range:
                     direction = -1.0 if self.rng.random() < 0.7 else 1.0
-                elif centre > self.far:
+                elif centre > self.far * self.front_range:
                     direction = 1.0                        # at the edge of the front range: come closer
-                elif centre > 0.35:
+                elif centre > self.mid_range_above * self.front_range:
                     direction = 1.0 if self.rng.random() < self.approach_bias else -1.0
                 else:
                     direction = self.rng.choice([-1.0, 1.0])
@@ -115,6 +132,22 @@ class RandomExplorer:
             bend = self.rng.uniform(-0.4, 0.4) * self.drive_speed if kind == 'arc' else 0.0
             cmd = [v - bend, v + bend]
         self.plan.extend(self._segment(cmd, steps))
+
+    def _search(self) -> None:
+        """Before sensor 1 has ever seen the wall (a robot started beyond its range), wandering at random seldom
+        finds it (0 of 10 seeds in 12 000 steps from 1 m with 0.75 m front sensors), and straight runs from random
+        turns drift away. So: rays from where the search stands, each a random turn (none before the first), a
+        straight run and the same run backwards, each `search_growth` times as long as the last; a ray heading
+        toward the wall finds it once it is long enough, and no ray leaves the robot further away. Where part of
+        sensor 1 sees the wall, command() drives on toward it and the next rays start short again."""
+        if self.search_steps:
+            # a heading of its own, not a small step from the last one: up to four of an excursion's longest turns
+            turn = self.rng.choice([-1.0, 1.0]) * self.turn_speed
+            self.plan.extend(self._segment([-turn, turn], self.rng.integers(0, 4 * self.excursion_turn_steps[1])))
+        self.search_steps = round(self.search_growth * self.search_steps) or self.hold_steps[1]
+        self.plan.extend(self._segment([self.drive_speed] * 2, self.search_steps))
+        self.plan.extend(self._segment([-self.drive_speed] * 2, self.search_steps))
+        self.mode = 'search'
 
     def _start_approach(self, front: np.ndarray) -> None:
         """Choose the excursion: a repeat of one that reached sensor 2 (with probability repeat_probability) or a
@@ -140,7 +173,7 @@ class RandomExplorer:
                        (np.array([run, run]) * self.drive_speed, round(run_steps)),
                        (np.array([-turn2, turn2]) * self.turn_speed, round(abs(turn2_steps)))]
         if self.approach_probability > 0 and self.rng.random() < self.approach_probability:
-            self.approach_target = self.rng.uniform(self.near, front[1])
+            self.approach_target = self.rng.uniform(self.near * self.front_range, front[1])
 
     def _approach(self, front: np.ndarray, too_close: bool) -> None:
         if front[1] > self.approach_target and not too_close:
@@ -212,19 +245,25 @@ class RandomExplorer:
             self.since_in_range.append(cmd)
         self.last_command = cmd
 
-    def command(self, readings: np.ndarray, bumped: bool = False) -> np.ndarray:
-        """Next wheel command [left, right] from the current readings (NaN = lost, +-inf = out of range)."""
+    def command(self, readings: np.ndarray, front_range: float, bumped: bool = False) -> np.ndarray:
+        """Next wheel command [left, right] from the current readings (NaN = lost, +-inf = out of range) and the
+        front sensors' max range [m] (their Range messages' max_range), the unit of the reading thresholds."""
+        if not (math.isfinite(front_range) and front_range > 0):
+            raise ValueError(f'front_range {front_range!r} must be a positive max range [m]')
+        self.front_range = float(front_range)
         readings = np.asarray(readings, dtype=float)
         lost = np.isnan(readings)
         readings = np.where(lost, self.last_valid, readings)
         self.last_valid = readings
         front = readings[list(SENSOR1)]
         in_range = bool(np.all(np.isfinite(front)))
-        too_close = bumped or bool(np.any(np.isfinite(front) & (front < self.near))) or bool(np.any(front == -np.inf))
+        too_close = (bumped or bool(np.any(np.isfinite(front) & (front < self.near * self.front_range)))
+                     or bool(np.any(front == -np.inf)))
         if in_range:
-            if self.mode == 'retrace':
+            if self.mode in ('retrace', 'search'):
                 self.mode = 'wander'
                 self.plan.clear()
+            self.seen_sensor1 = True
         self.steps += 1
         if too_close and self.mode != 'retrace':
             self.plan.clear()
@@ -241,15 +280,24 @@ class RandomExplorer:
         elif (self.mode == 'excursion' and in_range2 and not too_close and self.plan
               and self.rng.random() < self.practice_probability):
             self._practice()
+        if self.mode == 'search' and np.any(np.isfinite(front)) and not too_close:
+            # part of sensor 1 sees the wall: drive on toward it until all of it does or a reflex ends the ray;
+            # the next rays (each with its turn) start short again
+            self.plan.clear()
+            self.plan.extend(self._segment([self.drive_speed] * 2, 1))
+            self.search_steps = self.hold_steps[1]
         if not self.plan:
-            if not in_range and self.since_in_range:
+            if not self.seen_sensor1:
+                self._search()
+            elif not in_range and self.since_in_range:
                 # Still outside after the excursion: retrace exactly, newest command first.
                 self.plan.extend(-c for c in reversed(self.since_in_range[-self.max_retrace:]))
                 self.since_in_range = []
                 self.mode = 'retrace'
             elif self.mode == 'approach' and in_range:
                 self._approach(front, too_close)
-            elif in_range and ((front[1] < self.excursion_below and self.rng.random() < self.excursion_probability)
+            elif in_range and ((front[1] < self.excursion_below * self.front_range
+                                and self.rng.random() < self.excursion_probability)
                                or self.steps_in_excursions < self.excursion_share * self.steps):
                 self._start_approach(front)
                 self._approach(front, too_close)
@@ -257,7 +305,7 @@ class RandomExplorer:
                 self.mode = 'wander'
                 self._random_wander(front)
         cmd = self.plan.popleft()
-        if self.mode != 'wander':
+        if self.mode not in ('wander', 'search'):
             self.steps_in_excursions += 1
         if in_range:
             self.since_in_range = [cmd]       # the command that may take us out is the first one to undo

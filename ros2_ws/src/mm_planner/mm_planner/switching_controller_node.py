@@ -209,6 +209,9 @@ class SwitchingControllerNode(Node):
             problem = _readings_problem(name, getattr(msg, name), length)
             if problem:
                 return problem
+        limits = np.asarray(msg.sensor1_range, dtype=float)
+        if limits.shape != (2,) or not (np.all(np.isfinite(limits)) and 0.0 <= limits[0] < limits[1]):
+            return f'sensor1_range {list(limits)} is not [min, max] with 0 <= min < max (the front sensors\' range)'
         if len(msg.in_range) not in (0, 5):
             return f'in_range has {len(msg.in_range)} flags, expected 5'
         if msg.active_space not in SPACES:
@@ -266,6 +269,7 @@ class SwitchingControllerNode(Node):
             coordinates=np.asarray(msg.coordinates, dtype=float) if len(msg.coordinates) else None,
             sensor2_estimate=np.asarray(msg.sensor2_estimate, dtype=float) if len(msg.sensor2_estimate) else None,
             readings=np.array(list(msg.sensor1) + list(msg.sensor2), dtype=float),
+            sensor1_range=np.asarray(msg.sensor1_range, dtype=float),
             learner_samples=int(msg.samples) or None)     # a learner's state counts its own sample: 0 = not given
         self.state_wall = time.monotonic()
         if not (self.agent.needs_bumper and not self.bumper_since_command):

@@ -60,6 +60,7 @@ class Observation:
     coordinates: Optional[np.ndarray] = None
     sensor2_estimate: Optional[np.ndarray] = None
     readings: Optional[np.ndarray] = None          # (5,) raw: sensor 1 then sensor 2; +-inf out of range, NaN lost
+    sensor1_range: Optional[np.ndarray] = None     # (2,) [min, max] the front sensors read [m] (with the readings)
     learner_samples: Optional[int] = None          # samples the learner holds (None: unknown)
     bumped: bool = False
     model: Optional[WallModel] = None
@@ -330,9 +331,15 @@ class WallAgent:
                 else:
                     self._take_model(early)
         if self.phase == ControllerStatus.PHASE_EXPLORING:
-            command = self.explorer.command(state.readings, state.bumped)
+            command = self._explorer_command(state)
             self.explored += 1
         return command
+
+    def _explorer_command(self, state: Observation) -> np.ndarray:
+        if state.sensor1_range is None or len(state.sensor1_range) != 2:
+            raise ValueError('an exploring state needs sensor1_range, the front sensors\' [min, max] range: the '
+                             'explorer\'s reading thresholds are fractions of it')
+        return self.explorer.command(state.readings, state.sensor1_range[1], state.bumped)
 
     def _rehearse(self, state: Observation):
         """One step of the rehearsals (module docstring): explore until sensor 1 sees the wall, drive with the
@@ -361,7 +368,7 @@ class WallAgent:
                 r.stalled += 1           # out of range too: no state there is reached for sure
             c = self.controller
             if not in_range:             # back into sensor-1 range as the explorer does (it approaches the wall)
-                return self.explorer.command(state.readings, state.bumped), math.nan, ()
+                return self._explorer_command(state), math.nan, ()
             if distance >= c.waypoint_tolerance and r.stalled <= c.stall_steps:
                 step = c.jacobian_step(r.model.sensor1_jacobian(np.asarray(state.coordinates, dtype=float)),
                                        r.start - state.coordinates)
