@@ -2,11 +2,13 @@
 sensor_manifold + switching_controller as processes) is run twice with the same seeds, the second time beside a
 CPU-burning process. No wall-clock timeout may decide what is learned, so the model the run ends with (the first
 ready one, after the extra exploration the models before it asked for) must be identical array for array, byte for
-byte, and so must every command of the exploration that produced its data."""
+byte, and so must every command of the exploration that produced its data. The same holds for the three nodes
+composed in one process (mm_bringup wheeled_container): composition changes the speed, not the data."""
 import subprocess
 import sys
 
 import numpy as np
+import pytest
 from mm_common.ros_harness import RosHarness
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
@@ -20,7 +22,7 @@ COMMANDS = '/wheeled/wheel_velocity_controller/commands'
 QOS = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)     # holds every command until drained
 
 
-def run_once(work):
+def run_once(work, composed=False):
     """Explore and learn until the controller stops exploring; returns (saved model arrays, exploration commands,
     samples of the last model)."""
     model_file = work / 'wall_model.npz'
@@ -32,7 +34,7 @@ def run_once(work):
         listener = ros.node('determinism_listener')
         listener.create_subscription(Float64MultiArray, COMMANDS, lambda m: commands.append(tuple(m.data)), QOS)
         with WallGraph(work, exploration_steps=EXPLORATION, seed=SEED, model_path=model_file,
-                       recorder='determinism_listener', recorded_topics=[COMMANDS]) as wall:
+                       recorder='determinism_listener', recorded_topics=[COMMANDS], composed=composed) as wall:
             # A model that is not ready sends the controller exploring on and the learner refits after more
             # samples, so the first model is no place to stop (where the graph stops would depend on timing). The
             # run ends where the controller stops exploring, at the first ready model; the learner saved it before
@@ -51,23 +53,37 @@ def run_once(work):
     return arrays, explored, samples
 
 
-def test_same_seeds_give_the_same_model_and_commands_idle_and_under_load(tmp_path):
-    arrays_idle, explored_idle, samples_idle = run_once(tmp_path / 'idle')
+@pytest.fixture(scope='module')
+def idle_run(tmp_path_factory):
+    return run_once(tmp_path_factory.mktemp('idle'))
+
+
+def assert_same_run(run, reference):
+    arrays, explored, samples = run
+    arrays_ref, explored_ref, samples_ref = reference
+    assert len(explored_ref) == samples_ref >= EXPLORATION
+    # a listener whose endpoint matched late misses the first commands: that shows as a shift, anything else is
+    # non-determinism (seen once, unreproduced: which one it was is what this message tells next time)
+    shift = next((k for k in range(1, 50) if explored[k:] == explored_ref[:-k]
+                  or explored_ref[k:] == explored[:-k]), None)
+    assert explored == explored_ref, f'shifted by {shift}' if shift else 'not a shift'
+    assert samples == samples_ref
+    assert sorted(arrays) == sorted(arrays_ref)
+    for key in arrays_ref:
+        assert arrays[key] == arrays_ref[key], f'model array {key} differs'
+
+
+def test_same_seeds_give_the_same_model_and_commands_idle_and_under_load(tmp_path, idle_run):
     burner = subprocess.Popen([sys.executable, '-c', 'import time\nend = time.monotonic() + %d\n'
                                'while time.monotonic() < end:\n    sum(i * i for i in range(10000))' % BURN_SECONDS])
     try:
-        arrays_busy, explored_busy, samples_busy = run_once(tmp_path / 'busy')
+        busy = run_once(tmp_path / 'busy')
         assert burner.poll() is None, 'the burner ended before the busy run did: it ran without load'
     finally:
         burner.kill()
         burner.wait()
-    assert len(explored_idle) == samples_idle >= EXPLORATION
-    # a listener whose endpoint matched late misses the first commands: that shows as a shift, anything else is
-    # non-determinism (seen once, unreproduced: which one it was is what this message tells next time)
-    shift = next((k for k in range(1, 50) if explored_busy[k:] == explored_idle[:-k]
-                  or explored_idle[k:] == explored_busy[:-k]), None)
-    assert explored_busy == explored_idle, f'shifted by {shift}' if shift else 'not a shift'
-    assert samples_busy == samples_idle
-    assert sorted(arrays_busy) == sorted(arrays_idle)
-    for key in arrays_idle:
-        assert arrays_busy[key] == arrays_idle[key], f'model array {key} differs between the idle and busy run'
+    assert_same_run(busy, idle_run)
+
+
+def test_the_composed_loop_learns_exactly_what_three_processes_learn(tmp_path, idle_run):
+    assert_same_run(run_once(tmp_path / 'composed', composed=True), idle_run)

@@ -28,7 +28,8 @@ setup(
             'topic = mm_bringup.topic_tool:main',
             'bag = mm_bringup.bag_tool:main',
             'ros2 = mm_bringup.ros2_cli:main',
-            'demo = mm_bringup.demo:main'
+            'demo = mm_bringup.demo:main',
+            'wheeled_container = mm_bringup.wheeled_container:main'
         ],
     },
 )

@@ -4,7 +4,9 @@
 
 1. A recorder starts first (all topics, reliable where the publishers are) and writes `--output`, replacing it.
 2. Section 2: wheeled_sim (lockstep) + sensor_manifold + switching_controller on the `paper` sensor layout (no pose
-   where both sensor groups see the wall, as in the paper; `--layout overlap` for the simulator's default). The
+   where both sensor groups see the wall, as in the paper; `--layout overlap` for the simulator's default), composed
+   in one process (mm_bringup wheeled_container: the same nodes and topics, the same learning to the byte, about
+   1.7x the loop's rate, and the other core left to the arm; `--separate-processes` for one process each). The
    robot explores (3 000 steps, the budget the wall_task benchmark's headline measures), the manifold node learns
    the grid, Jacobians and virtual sensor space, then the paper's task runs: start facing the wall perpendicularly
    at 1 m, goal shown as the sensor-2 reading of the pose parallel to the wall at the layout's goal distance
@@ -105,13 +107,13 @@ def learn_with_progress(wall: WallGraph, every_s: float = 5.0) -> None:
 
 
 def wall_experiment(graph: ProcessGraph, work: Path, exploration_steps: int, figures: Path, phases: Phases,
-                    layout: str = 'paper') -> dict:
+                    layout: str = 'paper', composed: bool = True) -> dict:
     robot, dt = layout_robot(layout)       # the simulator's sensor model: ground truth chooses the goal reading only
     goal_pose = PAPER_GOAL_POSES[layout]
     began = time.monotonic()
     sim_files = [simulator_params_file(), layout_file(layout)]
     with WallGraph(work, exploration_steps=exploration_steps, graph=graph, recorder='recorder', dt=dt,
-                   recorded_topics=LOOP_TOPICS, sim_params_files=sim_files) as wall:
+                   recorded_topics=LOOP_TOPICS, sim_params_files=sim_files, composed=composed) as wall:
         log(f'wheeled graph ({layout} sensor layout) started in {phases.done("wheeled_start")} s; exploring '
             f'{exploration_steps} steps')
         explore_with_progress(wall, exploration_steps)
@@ -128,7 +130,7 @@ def wall_experiment(graph: ProcessGraph, work: Path, exploration_steps: int, fig
     phases.done('task')
     final = robot.read(episode.poses[-1], noisy=False)[list(SENSOR2)]
     error = float(np.max(np.abs(final - goal))) if np.all(np.isfinite(final)) else float('inf')
-    summary = {'layout': layout, 'reached': episode.reached, 'detail': episode.detail, 'final_error_m': error,
+    summary = {'layout': layout, 'composed': composed, 'reached': episode.reached, 'detail': episode.detail, 'final_error_m': error,
                'final_pose': [round(v, 4) for v in episode.poses[-1]], 'steps': len(episode.poses) - 1,
                'path_ratio': episode.path_length() / oracle_path_length(PAPER_START, goal_pose),
                'blind_fraction': episode.blind_fraction(), 'learning_samples': wall.samples,
@@ -201,6 +203,8 @@ def main(argv=None) -> int:
                         help='wheeled-robot exploration steps (the learner asks for more when its model is not ready)')
     parser.add_argument('--arm-exploration-steps', type=int, default=500, help='arm exploration steps')
     parser.add_argument('--skip-arm', action='store_true', help='run the Section 2 experiment only')
+    parser.add_argument('--separate-processes', action='store_true',
+                        help='the wheeled loop as three processes instead of composed in one')
     args = parser.parse_args(argv)
     bag = Path(args.output).resolve()
     if bag.exists():
@@ -213,7 +217,7 @@ def main(argv=None) -> int:
         try:
             arm = None if args.skip_arm else Beside(arm_experiment, graph, args.arm_exploration_steps)
             results['wall'] = wall_experiment(graph, Path(tmp) / 'wall', args.exploration_steps, Path(args.figures),
-                                              phases, args.layout)
+                                              phases, args.layout, composed=not args.separate_processes)
             if arm is not None:
                 results['arm'], arm_s = arm.result()
                 phases.add('arm', arm_s)

@@ -92,7 +92,7 @@ class WallGraph:
     def __init__(self, work_dir: Path, exploration_steps: int = 10000, noise_range_fraction: float = 0.0,
                  dropout: float = 0.0, model_path=None, seed: int = 0,
                  graph: Optional[ProcessGraph] = None, dt: float = 0.05, recorder: Optional[str] = None,
-                 recorded_topics: Sequence[str] = (), sim_params_files: Sequence[Path] = ()):
+                 recorded_topics: Sequence[str] = (), sim_params_files: Sequence[Path] = (), composed: bool = False):
         """`recorder`: name of a recorder node already running in `graph`, and `recorded_topics` the topics it must
         have subscribed to before the loop may start. The simulator starts first (it re-publishes its first step until
         a command arrives), then the controller (it only answers states), and the manifold node last, which closes
@@ -100,7 +100,9 @@ class WallGraph:
         loop from its first step. `model_path`: where the learner keeps its model (default <work_dir>/wall_model.npz;
         '' = not persisted, as in the shipped sensor_manifold.yaml: the controller gets the model as a message
         either way, kept here as `model_msg`) and, next to it (.samples.csv), its samples. `sim_params_files`: parameter files for wheeled_sim (e.g. wheeled_sim.yaml
-        and a sensor layout of mm_sim/layouts), loaded in order before the parameters set here."""
+        and a sensor layout of mm_sim/layouts), loaded in order before the parameters set here. `composed`: the
+        three nodes in one process (mm_bringup wheeled_container; it waits for the recorder in the same way), else
+        one process each."""
         self.work_dir = Path(work_dir)
         self.work_dir.mkdir(parents=True, exist_ok=True)
         self.dt = dt
@@ -144,13 +146,23 @@ class WallGraph:
                                                 'model_path': learner_path, 'samples_path': samples_path}, []),
         ]
         sim_files = [a for f in sim_params_files for a in ('--params-file', str(f))]
+        extra_args = {'wheeled_sim': ['--ros-args', *sim_files] if sim_files else []}
+        if composed:
+            # One process; its first node (the simulator) shows it started, and it waits for the recorder itself.
+            container = {f'{executable}:{name}': value for _, executable, parameters, _ in steps
+                         for name, value in parameters.items() if name != 'use_sim_time'}
+            wait = ['--wait-for-subscriber', recorder, '--wait-topics', *recorded_topics] if recorder and \
+                recorded_topics else []
+            extra_args['wheeled_container'] = wait + extra_args['wheeled_sim']
+            steps = [('mm_bringup', 'wheeled_container', container, [])]
         for attempt in range(LOOP_START_ATTEMPTS):
             for package, executable, parameters, published in steps:
-                extra = ['--ros-args', *sim_files] if executable == 'wheeled_sim' and sim_files else []
-                self.nodes.append(self.graph.start(package, executable, parameters, extra_args=extra))
+                self.nodes.append(self.graph.start(package, executable, parameters,
+                                                   extra_args=extra_args.get(executable, [])))
                 # One node at a time, each seen on the graph before the next starts (simultaneous starts
                 # occasionally left two participants without matching endpoints, and the loop never started).
-                self.spin_until(lambda: executable in node.get_node_names(), 60.0, f'{executable} to appear')
+                name = 'wheeled_sim' if composed else executable
+                self.spin_until(lambda: name in node.get_node_names(), 60.0, f'{name} to appear')
                 wait = [t for t in published if t in recorded_topics]
                 if recorder and wait:
                     self.spin_until(lambda: all(any(i.node_name == recorder

@@ -24,7 +24,15 @@ STOP_POLL_S = 0.1        # s: longest a stop request waits for an idle executor 
 
 
 def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = None) -> None:
-    """Spin one node until SIGINT/SIGTERM/SIGHUP or external shutdown, then clean up; the process exits with status 0.
+    """Spin one node until SIGINT/SIGTERM/SIGHUP or external shutdown (run_nodes)."""
+    run_nodes([node_factory], args)
+
+
+def run_nodes(node_factories: Sequence[Callable[[], Node]], args: Optional[Sequence[str]] = None,
+              create_when: Optional[Callable[[Sequence[Node]], bool]] = None) -> None:
+    """Spin the nodes (one, or several composed in one process) in one executor until SIGINT/SIGTERM/SIGHUP or
+    external shutdown, then clean up; the process exits with status 0. Each node is created once `create_when` (if
+    given) is true of the nodes created before it, checked as they spin (e.g. a recorder elsewhere subscribed).
 
     The executor is rclpy's EventsExecutor: the SingleThreadedExecutor rebuilds its wait set from every
     subscription's, publisher's and QoS event's handle on each wait, which cost the wheeled graph's nodes 1.2-2.5 ms
@@ -43,19 +51,24 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
     for sig in _STOP_SIGNALS:
         signal.signal(sig, lambda *_: stop.set())
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    node = None
+    nodes = []
     executor = None
     refused = ''
     try:
-        if stop.is_set():
-            return
-        try:
-            node = node_factory()
-        except (ParameterException, ValueError) as exc:
-            refused = f'{getattr(node_factory, "__name__", "node")}: cannot start: {exc}'
-            return
         executor = EventsExecutor()
-        executor.add_node(node)
+        for node_factory in node_factories:
+            while create_when is not None and nodes and not create_when(nodes):
+                if stop.is_set() or not rclpy.ok():
+                    return
+                executor.spin_once(timeout_sec=STOP_POLL_S)
+            if stop.is_set():
+                return
+            try:
+                nodes.append(node_factory())
+            except (ParameterException, ValueError) as exc:
+                refused = f'{getattr(node_factory, "__name__", "node")}: cannot start: {exc}'
+                return
+            executor.add_node(nodes[-1])
         while not stop.is_set() and rclpy.ok():
             executor.spin_once(timeout_sec=STOP_POLL_S)
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -66,7 +79,7 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
     finally:
         if executor is not None:
             executor.shutdown(timeout_sec=1.0)
-        if node is not None:
+        for node in reversed(nodes):
             node.destroy_node()
         rclpy.try_shutdown()
         if refused:

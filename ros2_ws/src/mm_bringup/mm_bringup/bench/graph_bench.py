@@ -163,15 +163,16 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
-def wheeled_graph(steps: int, work: Path) -> dict:
-    """The full wheeled loop (three processes) exploring `steps` steps with the learner's and the explorer's work
-    included; the rate is taken between the 100th and the last exploration sample (start-up excluded), with the CPU
-    each process spent per step over that stretch (where the time goes). Then one paper-task episode when the model
-    can map the goal (seconds per wall episode through the graph, reset included)."""
+def wheeled_graph(steps: int, work: Path, composed: bool = False) -> dict:
+    """The full wheeled loop (three processes, or with `composed` the three nodes in one: keys prefixed
+    `composed_`) exploring `steps` steps with the learner's and the explorer's work included; the rate is taken
+    between the 100th and the last exploration sample (start-up excluded), with the CPU each process spent per step
+    over that stretch (where the time goes). Then one paper-task episode when the model can map the goal (seconds
+    per wall episode through the graph, reset included)."""
     marks = {}
     result = {'graph_steps': steps}
     began = time.perf_counter()
-    with WallGraph(work, exploration_steps=steps, model_path='') as wall:
+    with WallGraph(work, exploration_steps=steps, model_path='', composed=composed) as wall:
         result['graph_startup_s'] = time.perf_counter() - began     # three nodes started until the loop's 2nd step
         processes = {n.label: n.process.pid for n in wall.nodes}
         wall.spin_until(lambda: wall.samples >= 100, 120.0, '100 samples')
@@ -195,7 +196,7 @@ def wheeled_graph(steps: int, work: Path) -> dict:
     (n0, t0), (n1, t1) = marks['from'], marks['to']
     result['graph_steps_per_s'] = (n1 - n0) / (t1 - t0)
     result['graph_cpu_ms_per_step'] = {k: (cpu_to[k] - cpu_from[k]) * 1000 / (n1 - n0) for k in cpu_from}
-    return result
+    return {f'composed_{k}': v for k, v in result.items()} if composed else result
 
 
 def arm_graph(frames: int, work: Path) -> dict:
@@ -262,6 +263,8 @@ def run(output_dir: Path, quick: bool) -> dict:
     result.update(lockstep_loop(steps, work / 'logs'))
     result.update(wheeled_graph(1000 if quick else 5000, work / 'wheeled'))
     result['graph_over_lockstep'] = result['graph_steps_per_s'] / result['lockstep_steps_per_s']
+    result.update(wheeled_graph(1000 if quick else 5000, work / 'composed', composed=True))
+    result['composed_graph_over_lockstep'] = result['composed_graph_steps_per_s'] / result['lockstep_steps_per_s']
     result.update(arm_graph(200 if quick else 500, work / 'arm'))
     result.update(offline_costs(2000 if quick else 10000))
     result.update(pingpong_reference(steps))

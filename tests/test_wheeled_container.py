@@ -1,0 +1,55 @@
+"""mm_bringup wheeled_container: the wheeled loop's three nodes in one process. They are the usual nodes on the
+usual topics (the learning is identical to three processes: tests/test_determinism_under_load.py); here: the
+simulator keeps its own clock whatever `use_sim_time` the command line gives, node-specific parameters reach their
+node only, and a parameter a node refuses ends the process with one error line and status 2, as a single node's does (the
+nodes created before it log as usual)."""
+import subprocess
+
+from mm_common.ros_harness import RosHarness
+from rcl_interfaces.srv import GetParameters
+from rosgraph_msgs.msg import Clock
+
+from mm_bringup.process_graph import ProcessGraph, executable_path
+
+NODES = ('wheeled_sim', 'switching_controller', 'sensor_manifold')
+
+
+def parameter(ros, node, target, name):
+    client = node.create_client(GetParameters, f'/{target}/get_parameters')
+    assert ros.spin_until(client.service_is_ready, 20.0), f'{target} offers no parameter service'
+    future = client.call_async(GetParameters.Request(names=[name]))
+    assert ros.spin_until(future.done, 10.0)
+    node.destroy_client(client)
+    return future.result().values[0]
+
+
+def test_three_nodes_in_one_process_on_the_simulators_clock(tmp_path):
+    ros = RosHarness()
+    try:
+        with ProcessGraph(log_dir=tmp_path) as graph:
+            container = graph.start('mm_bringup', 'wheeled_container',
+                                    {'use_sim_time': True, 'wheeled_sim:dt': 0.1, 'sensor_manifold:dt': 0.1,
+                                     'switching_controller:dt': 0.1, 'switching_controller:exploration_steps': 50})
+            node = ros.node('container_probe')
+            clock = []
+            node.create_subscription(Clock, '/clock', clock.append, 10)
+            assert ros.spin_until(lambda: all(n in node.get_node_names() for n in NODES), 30.0), \
+                graph.log_tail(container)
+            # the loop runs: the simulator is not waiting for a clock of its own
+            assert ros.spin_until(lambda: len(clock) > 20, 30.0), graph.log_tail(container)
+            assert parameter(ros, node, 'wheeled_sim', 'use_sim_time').bool_value is False
+            assert parameter(ros, node, 'sensor_manifold', 'use_sim_time').bool_value is True
+            assert parameter(ros, node, 'switching_controller', 'exploration_steps').integer_value == 50
+            assert parameter(ros, node, 'wheeled_sim', 'dt').double_value == 0.1
+            assert container.process.poll() is None
+    finally:
+        ros.close()
+
+
+def test_a_refused_parameter_ends_the_container_with_one_line():
+    result = subprocess.run([str(executable_path('mm_bringup', 'wheeled_container')), '--ros-args',
+                             '-p', 'sensor_manifold:learn_after:=-5'], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip() and not line.startswith('[INFO]')]
+    assert len(lines) == 1 and 'SensorManifold: cannot start' in lines[0] and 'learn_after' in lines[0], \
+        result.stderr
