@@ -82,6 +82,18 @@ def test_local_pca_dimension_of_curve_surface_and_volume():
     assert LocalPCADimension().fit(cube).dimension_ == 3
 
 
+def test_local_pca_dimension_is_not_fooled_by_reading_noise():
+    """Noise of 2.5 % of the surface's size fills the third direction of small neighbourhoods (the 95 % rule alone,
+    growth=0, reads 3-D), but its variance does not grow with the neighbourhood."""
+    rng = np.random.default_rng(1)
+    n = 2000
+    a, w = rng.uniform(0, np.pi, n), rng.uniform(-1, 1, n)
+    noisy_sheet = np.c_[np.cos(a), np.sin(a), w] + rng.normal(0, 0.05, (n, 3))
+    assert LocalPCADimension(growth=0.0).fit(noisy_sheet).dimension_ == 3
+    assert LocalPCADimension().fit(noisy_sheet).dimension_ == 2
+    assert LocalPCADimension().fit(rng.uniform(-1, 1, (n, 3)) + rng.normal(0, 0.05, (n, 3))).dimension_ == 3
+
+
 def test_local_pca_dimension_rejects_too_few_or_non_finite_samples():
     with pytest.raises(ValueError):
         LocalPCADimension(n_neighbors=30).fit(np.zeros((20, 3)))

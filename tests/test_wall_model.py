@@ -191,6 +191,23 @@ def test_agent_never_commands_non_finite_and_reports_its_phases(model):
     assert any('non-finite' in line for line in decision.log)
 
 
+def test_a_goal_tolerance_is_judged_against_what_sensor_2_reads(model):
+    """No tolerance in metres is built in: one as wide as sensor 2's range (here 0.005-0.25 m) would accept any
+    reading, so it is refused with the model at hand; a goal that came before the model fails under its stamp."""
+    view = WallModel.from_msg(model_message(WheeledRobot(), announced(model)))
+    agent = WallAgent(DT, exploration_steps=0, rehearsals=0)
+    for tolerance in (-0.01, math.inf, math.nan):
+        assert 'positive and finite' in agent.step(Observation(goal=Goal(np.array([0.2, 0.2]), tolerance))).goal_reason
+    early = agent.step(Observation(goal=Goal(np.array([0.2, 0.2]), 0.3, stamp=3)))
+    assert early.goal_accepted                                    # no model yet: it waits
+    decision = agent.step(Observation(model=view))
+    assert decision.phase_name == 'FAILED' and 'span of what sensor 2 reads' in decision.detail
+    assert decision.goal_stamp == 3
+    refused = agent.step(Observation(goal=Goal(np.array([0.2, 0.2]), 0.245)))
+    assert not refused.goal_accepted and 'span' in refused.goal_reason
+    assert agent.step(Observation(goal=Goal(np.array([0.2, 0.2]), 0.01))).goal_accepted
+
+
 def test_agent_explores_on_while_the_learner_holds_fewer_samples_than_explored():
     """A learner that restarted lost its samples: the agent explores until the learner holds as many as were explored
     (otherwise the learner never reaches its fit and the lockstep loop waits for good)."""

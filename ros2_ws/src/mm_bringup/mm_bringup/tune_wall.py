@@ -20,6 +20,12 @@ range (RandomExplorer.search_growth, results/tune_wall_search.json):
     ./mm python -m mm_bringup.tune_wall --search --robots front_0.75m --seeds 100 ... 119 \
         --explorer '{"search_growth": 1.15}' '{"search_growth": 1.25}' '{"search_growth": 1.5}'
 
+`--dimension` measures the intrinsic dimension the learner's estimator reads on clean and noisy explorations
+(results/tune_wall_dimension.json):
+
+    ./mm python -m mm_bringup.tune_wall --dimension '{"max_samples": 100000}' '{}' --robots default scaled_1.5x \
+        dt_0.1 front_0.75m --seeds 100 101 102
+
 Rows are printed as they come (one JSON object per line); `--rows` summarizes such output of several processes (for
 instance one per layout) into one file.
 """
@@ -37,13 +43,17 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from mm_bringup.bench import write_json
-from mm_bringup.bench.wall_task import ROBOTS, robot_variant
+from mm_bringup.bench.wall_task import NOISE, ROBOTS, robot_variant
 from mm_bringup.wall_experiment import (PAPER_START, explore, learn, oracle_path_length, random_task, run_episode,
                                         sensor2_goal_reading, success)
 from mm_common.wheeled_sensors import SENSOR1
+from mm_manifold.dimension import LocalPCADimension
+from mm_manifold.sensor_manifold import group_in_range
 from mm_sim.wheeled_model import WheeledRobot
 
 TUNING_SEEDS = tuple(range(100, 120))
+SEARCH_RULE = 'most searches that found the wall, then fewest steps'
+DIMENSION_RULE = "most explorations read 2-D (the grid's dimension)"
 TASK_SEED = 1103
 
 
@@ -109,6 +119,28 @@ def search_cell(layout, robot_name, seed, steps, explorer_params) -> Dict:
                 first_in_range=int(np.argmax(seen)) if seen.any() else None)
 
 
+def dimension_cells(layout, robot_name, seed, steps, noisy, settings) -> List[Dict]:
+    """The intrinsic dimension LocalPCADimension(**params) reads, for each params of `settings`, from the sensor-1
+    samples of one exploration of `steps` steps (noisy: the benchmark's noise and dropout); the grid needs 2."""
+    noise = dict(noise_range_fraction=NOISE['std_fraction_of_max_range'], dropout=NOISE['dropout'],
+                 random_state=seed) if noisy else {}
+    robot, dt, start = robot_variant(layout, robot_name, **noise)
+    readings = explore(robot, steps, start=start, random_state=seed, dt=dt).readings
+    sensor1 = readings[group_in_range(readings, SENSOR1)][:, list(SENSOR1)]
+    return [dict(layout=layout, robot=robot_name, seed=seed, steps=steps, noisy=noisy, estimator=params,
+                 sensor1_samples=len(sensor1), dimension=LocalPCADimension(**params).fit(sensor1).dimension_)
+            for params in settings]
+
+
+def summarize_dimension(rows: List[Dict]) -> List[Dict]:
+    by_setting: Dict[str, List[Dict]] = {}
+    for row in rows:
+        by_setting.setdefault(json.dumps(row['estimator'], sort_keys=True), []).append(row)
+    summary = [dict(estimator=json.loads(key), explorations=len(cells), two_d=sum(r['dimension'] == 2 for r in cells),
+                    other=sorted({r['dimension'] for r in cells} - {2})) for key, cells in by_setting.items()]
+    return sorted(summary, key=lambda s: -s['two_d'])
+
+
 def summarize_search(rows: List[Dict]) -> List[Dict]:
     by_setting: Dict[str, List[Dict]] = {}
     for row in rows:
@@ -158,6 +190,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument('--search', action='store_true',
                         help='measure only how soon sensor 1 first sees the wall from 1 m (with --robots front_0.75m '
                         'it starts beyond its range), per --explorer set, within --steps')
+    parser.add_argument('--dimension', nargs='+', type=json.loads, default=None, metavar='JSON',
+                        help='measure only the intrinsic dimension LocalPCADimension reads, one JSON object of its '
+                        'hyperparameters per setting, on clean and noisy explorations of each --steps-list length')
+    parser.add_argument('--steps-list', nargs='+', type=int, default=[3000, 10000, 20000])
     parser.add_argument('--rows', nargs='+', type=Path, default=None,
                         help='summarize rows printed by earlier runs (one JSON object per line) instead of running')
     parser.add_argument('--note', default='', help='what the output file should say about how it was made')
@@ -166,11 +202,25 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.rows:
         rows = [json.loads(line) for path in args.rows for line in path.read_text().splitlines()
                 if line.startswith('{')]
+        if rows and 'estimator' in rows[0]:
+            return _write(args, rows, summarize_dimension(rows), DIMENSION_RULE)
+        if rows and 'first_in_range' in rows[0]:
+            return _write(args, rows, summarize_search(rows), SEARCH_RULE)
         return _write(args, rows)
     bad = [s for s in args.seeds if s not in TUNING_SEEDS]
     if bad:
         parser.error(f'seeds {bad} are not tuning seeds ({TUNING_SEEDS[0]}-{TUNING_SEEDS[-1]})')
     rows = []
+    if args.dimension:
+        for layout in args.layouts:
+            for robot in args.robots:
+                for steps in args.steps_list:
+                    for noisy in (False, True):
+                        for seed in args.seeds:
+                            for row in dimension_cells(layout, robot, seed, steps, noisy, args.dimension):
+                                rows.append(row)
+                                print(json.dumps(row), flush=True)
+        return _write(args, rows, summarize_dimension(rows), DIMENSION_RULE)
     if args.search:
         for layout in args.layouts:
             for robot in args.robots:
@@ -178,7 +228,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                     for params in args.explorer:
                         rows.append(search_cell(layout, robot, seed, args.steps, params))
                         print(json.dumps(rows[-1]), flush=True)
-        return _write(args, rows, summarize_search(rows), 'most searches that found the wall, then fewest steps')
+        return _write(args, rows, summarize_search(rows), SEARCH_RULE)
     for layout in args.layouts:
         for robot in args.robots:
             for seed in args.seeds:

@@ -39,7 +39,6 @@ PHASE_NAMES = {getattr(ControllerStatus, n): n[len('PHASE_'):] for n in dir(Cont
 REACHING = {ManifoldState.SPACE_SENSOR1: ControllerStatus.PHASE_REACHING_SENSOR1,
             ManifoldState.SPACE_VIRTUAL_SENSOR1: ControllerStatus.PHASE_REACHING_VIRTUAL_SENSOR1,
             ManifoldState.SPACE_SENSOR2: ControllerStatus.PHASE_REACHING_SENSOR2}
-MAX_GOAL_TOLERANCE = 0.2     # [m] a goal's own tolerance must be below this (0: the agent's default)
 COMMANDING = (ControllerStatus.PHASE_EXPLORING, ControllerStatus.PHASE_REHEARSING)   # besides REACHING
 
 
@@ -245,10 +244,10 @@ class WallAgent:
             return f'the goal must be a sensor-2 reading of two values, got {reading.size}'
         if not np.all(np.isfinite(reading)) or np.any(reading <= 0):
             return f'goal reading must be positive and finite, got {list(map(float, reading))}'
-        if not (goal.tolerance == 0.0 or (math.isfinite(goal.tolerance) and 0 < goal.tolerance < MAX_GOAL_TOLERANCE)):
-            return f'tolerance {goal.tolerance} out of (0, {MAX_GOAL_TOLERANCE}) m'
+        if not (goal.tolerance == 0.0 or (math.isfinite(goal.tolerance) and goal.tolerance > 0)):
+            return f'tolerance {goal.tolerance} must be positive and finite (0: the default)'
         if self.model is not None:
-            return self.model.unreadable_goal(reading)
+            return self.model.unreadable_goal(reading, goal.tolerance)
         return None
 
     def _take_goal(self, goal: Goal) -> Tuple[bool, str]:
@@ -269,7 +268,7 @@ class WallAgent:
         goal, self.goal = self.goal, None
         self.goal_stamp = goal.stamp
         reading = np.asarray(goal.reading, dtype=float)
-        problem = self.model.unreadable_goal(reading) or (None if self.model.ready else
+        problem = self.model.unreadable_goal(reading, goal.tolerance) or (None if self.model.ready else
                                                           f'the model is not ready: {self.model.readiness}')
         tolerance = goal.tolerance or self.tolerance
         self.controller = SwitchingController(self.dt, max_wheel_speed=self.max_wheel_speed, tolerance=tolerance)

@@ -139,9 +139,12 @@ class WallModel:
         return exit_point, goal, deeper_fallbacks(self.overlap_sensor2, self.overlap_coordinates, sensor2_goal,
                                                   n_fallbacks)
 
-    def unreadable_goal(self, reading: np.ndarray) -> Optional[str]:
-        """Why sensor 2 could never show this reading (outside the range its sensors read), or None."""
+    def unreadable_goal(self, reading: np.ndarray, tolerance: float = 0.0) -> Optional[str]:
+        """Why sensor 2 could never show this reading (outside the range its sensors read), or a tolerance as wide
+        as that range would accept any reading; None if neither."""
         low, high = self.sensor2_range
         if np.any(reading < low) or np.any(reading > high):
             return f'goal reading {list(map(float, reading))} m is outside what sensor 2 reads ([{low}, {high}] m)'
+        if tolerance >= high - low:
+            return f'tolerance {tolerance} m is not below the span of what sensor 2 reads ({high - low:.4g} m)'
         return None
