@@ -7,7 +7,8 @@ import pytest
 
 from mm_bringup.bench.wall_task import robot_variant
 from mm_bringup.wall_experiment import (PAPER_GOAL_POSES, PAPER_START, explore, group_range, layout_robot,
-                                        model_message, oracle_path_length, random_task, run_episode, sensor2_goal_reading, success)
+                                        model_message, oracle_path_length, random_task, run_episode,
+                                        sensor2_goal_reading, success)
 from mm_manifold.jacobian import PolynomialJacobianField
 from mm_manifold.sensor_manifold import SensorManifoldModel, find_excursions, group_in_range
 from mm_common.wheeled_sensors import SENSOR1, SENSOR2

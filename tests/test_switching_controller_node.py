@@ -77,7 +77,8 @@ class Rig:
     def state(self, sec, sensor1=(0.6, 0.5, 0.6), sensor2=(INF, INF), space=0, coordinates=(), bumper=None):
         """A state, and the step's bumper reading when given (the explorer waits for it, however long)."""
         msg = ManifoldState(sensor1=[float(v) for v in sensor1], sensor2=[float(v) for v in sensor2],
-                            sensor1_range=FRONT_RANGE, in_range=[math.isfinite(v) for v in list(sensor1) + list(sensor2)],
+                            sensor1_range=FRONT_RANGE,
+                            in_range=[math.isfinite(v) for v in list(sensor1) + list(sensor2)],
                             active_space=space, coordinates=[float(v) for v in coordinates])
         msg.header.stamp.sec = sec
         self.state_pub.publish(msg)
@@ -410,7 +411,8 @@ def test_node_and_offline_runner_command_alike(learned):
             r = robot.read(pose)
             space, coords, s2, _ = tracker.update(r, last)
             state = ManifoldState(sensor1=[float(v) for v in r[:3]], sensor2=[float(v) for v in r[3:]],
-                                  sensor1_range=FRONT_RANGE, active_space=space, coordinates=[] if coords is None else [float(v) for v in coords],
+                                  sensor1_range=FRONT_RANGE, active_space=space,
+                                  coordinates=[] if coords is None else [float(v) for v in coords],
                                   sensor2_estimate=[] if s2 is None else [float(v) for v in s2])
             state.header.stamp.sec = k + 1
             rig.state_pub.publish(state)
@@ -423,7 +425,8 @@ def test_node_and_offline_runner_command_alike(learned):
         r = robot.read(pose)                                     # the final state: the goal is reached
         space, coords, s2, _ = tracker.update(r, last)
         state = ManifoldState(sensor1=[float(v) for v in r[:3]], sensor2=[float(v) for v in r[3:]],
-                              sensor1_range=FRONT_RANGE, active_space=space, coordinates=[] if coords is None else [float(v) for v in coords],
+                              sensor1_range=FRONT_RANGE, active_space=space,
+                              coordinates=[] if coords is None else [float(v) for v in coords],
                               sensor2_estimate=[] if s2 is None else [float(v) for v in s2])
         state.header.stamp.sec = len(episode.commands) + 1
         rig.state_pub.publish(state)

@@ -21,6 +21,11 @@ DT = 0.05
 FRONT = np.array([0.005, 1.5])      # the front sensors' [min, max] range these readings come from [m]
 
 
+def exploring(readings, learner_samples):
+    """A state while the agent explores: the readings, the front sensors' range, the learner's sample count."""
+    return Observation(state=True, readings=readings, sensor1_range=FRONT, learner_samples=learner_samples)
+
+
 @pytest.fixture(scope='module')
 def model():
     log = explore(WheeledRobot(), 5000, random_state=0, dt=DT)
@@ -129,12 +134,12 @@ def test_agent_explores_on_while_the_model_is_not_ready_and_fails_at_the_cap(mod
     view = WallModel.from_msg(model_message(WheeledRobot(), strict))
     agent = WallAgent(DT, exploration_steps=8, random_state=0, max_exploration_steps=10)
     far = np.array([0.6, 0.5, 0.6, np.inf, np.inf])
-    while agent.step(Observation(state=True, readings=far, sensor1_range=FRONT, learner_samples=agent.explored + 1)).command is not None:
+    while agent.step(exploring(far, agent.explored + 1)).command is not None:
         pass
     assert agent.phase == ControllerStatus.PHASE_LEARNING and agent.explored == 8
     decision = agent.step(Observation(model=view))
     assert decision.phase_name == 'EXPLORING' and 'held-out sensor-2 error' in decision.detail
-    while agent.step(Observation(state=True, readings=far, sensor1_range=FRONT, learner_samples=agent.explored + 1)).command is not None:
+    while agent.step(exploring(far, agent.explored + 1)).command is not None:
         pass
     assert agent.explored == 10
     decision = agent.step(Observation(model=view))
@@ -150,14 +155,14 @@ def test_agent_explores_on_when_the_learner_could_not_fit_and_fails_at_the_cap()
     fits one step before the agent's last), the failure is acted on when the exploration ends."""
     agent = WallAgent(DT, exploration_steps=8, random_state=0, max_exploration_steps=12)
     far = np.array([np.inf, np.inf, np.inf, np.inf, np.inf])
-    while agent.step(Observation(state=True, readings=far, sensor1_range=FRONT, learner_samples=agent.explored + 1)).command is not None:
+    while agent.step(exploring(far, agent.explored + 1)).command is not None:
         pass
     assert agent.phase == ControllerStatus.PHASE_LEARNING and agent.explored == 8
     decision = agent.step(Observation(fit_failure=FitFailure('fit failed: only 0 sensor-1 samples: explore more', 8)))
     assert decision.phase_name == 'EXPLORING' and 'only 0 sensor-1 samples' in decision.detail
     assert 'exploring 2 more' in decision.detail
     assert decision.command is not None                      # the state left unanswered gets its command
-    while agent.step(Observation(state=True, readings=far, sensor1_range=FRONT, learner_samples=agent.explored + 1)).command is not None:
+    while agent.step(exploring(far, agent.explored + 1)).command is not None:
         pass
     assert agent.phase == ControllerStatus.PHASE_LEARNING and agent.explored == 10
     decision = agent.step(Observation(fit_failure=FitFailure('fit failed: only 3 sensor-1 samples: explore more', 10)))
@@ -165,9 +170,9 @@ def test_agent_explores_on_when_the_learner_could_not_fit_and_fails_at_the_cap()
     # the learner holds one sample more than steps explored and fits before the agent's last step: set aside
     decision = agent.step(Observation(fit_failure=FitFailure('fit failed: only 5 sensor-1 samples: explore more', 12)))
     assert decision.phase_name == 'EXPLORING'
-    assert agent.step(Observation(state=True, readings=far, sensor1_range=FRONT, learner_samples=agent.explored + 1)).command is not None
+    assert agent.step(exploring(far, agent.explored + 1)).command is not None
     assert agent.explored == 12
-    decision = agent.step(Observation(state=True, readings=far, sensor1_range=FRONT, learner_samples=agent.explored + 1))
+    decision = agent.step(exploring(far, agent.explored + 1))
     assert decision.command is None
     assert decision.phase_name == 'FAILED' and 'the cap' in decision.detail and 'only 5 sensor-1' in decision.detail
 
@@ -214,12 +219,12 @@ def test_agent_explores_on_while_the_learner_holds_fewer_samples_than_explored()
     agent = WallAgent(DT, exploration_steps=5, random_state=0)
     far = np.array([0.6, 0.5, 0.6, np.inf, np.inf])
     for k in range(5):
-        assert agent.step(Observation(state=True, readings=far, sensor1_range=FRONT, learner_samples=k + 1)).command is not None
-    decision = agent.step(Observation(state=True, readings=far, sensor1_range=FRONT, learner_samples=3))     # restarted at step 3
+        assert agent.step(exploring(far, k + 1)).command is not None
+    decision = agent.step(exploring(far, 3))     # restarted at step 3
     assert decision.command is not None and decision.phase_name == 'EXPLORING'
     assert 'holds 3 of 5 samples: exploring 2 more' in decision.detail
-    assert agent.step(Observation(state=True, readings=far, sensor1_range=FRONT, learner_samples=4)).command is not None
-    decision = agent.step(Observation(state=True, readings=far, sensor1_range=FRONT, learner_samples=8))
+    assert agent.step(exploring(far, 4)).command is not None
+    decision = agent.step(exploring(far, 8))
     assert decision.command is None and decision.phase_name == 'LEARNING'
 
 
@@ -230,10 +235,10 @@ def test_agent_makes_up_for_a_learner_restart_once():
     agent = WallAgent(DT, exploration_steps=5, random_state=0)
     far = np.array([0.6, 0.5, 0.6, np.inf, np.inf])
     for k in range(3):
-        assert agent.step(Observation(state=True, readings=far, sensor1_range=FRONT, learner_samples=k + 1)).command is not None
+        assert agent.step(exploring(far, k + 1)).command is not None
     held = 0                                               # restarted after step 3: the learner holds nothing
     for _ in range(20):
-        decision = agent.step(Observation(state=True, readings=far, sensor1_range=FRONT, learner_samples=held))
+        decision = agent.step(exploring(far, held))
         if decision.command is None:
             break
         held += 1
@@ -256,12 +261,12 @@ def test_agent_takes_a_verdict_that_came_before_its_last_exploration_step(model)
         view = WallModel.from_msg(model_message(WheeledRobot(), strict))
         view.samples = 8                               # fitted on the 8 readings of 7 commands and the first one
         agent = WallAgent(DT, exploration_steps=8, random_state=0)
-        commands = [agent.step(Observation(state=True, readings=far, sensor1_range=FRONT, learner_samples=k + 1)).command
+        commands = [agent.step(exploring(far, k + 1)).command
                     for k in range(7)]
         if early:
             assert agent.step(Observation(model=view)).phase_name == 'EXPLORING'
-        commands.append(agent.step(Observation(state=True, readings=far, sensor1_range=FRONT, learner_samples=8)).command)
-        decision = agent.step(Observation(state=True, readings=far, sensor1_range=FRONT, learner_samples=9))
+        commands.append(agent.step(exploring(far, 8)).command)
+        decision = agent.step(exploring(far, 9))
         if not early:
             assert decision.command is None and decision.phase_name == 'LEARNING'
             decision = agent.step(Observation(model=view))

@@ -130,7 +130,8 @@ def wall_experiment(graph: ProcessGraph, work: Path, exploration_steps: int, fig
     phases.done('task')
     final = robot.read(episode.poses[-1], noisy=False)[list(SENSOR2)]
     error = float(np.max(np.abs(final - goal))) if np.all(np.isfinite(final)) else float('inf')
-    summary = {'layout': layout, 'composed': composed, 'reached': episode.reached, 'detail': episode.detail, 'final_error_m': error,
+    summary = {'layout': layout, 'composed': composed, 'reached': episode.reached, 'detail': episode.detail,
+               'final_error_m': error,
                'final_pose': [round(v, 4) for v in episode.poses[-1]], 'steps': len(episode.poses) - 1,
                'path_ratio': episode.path_length() / oracle_path_length(PAPER_START, goal_pose),
                'blind_fraction': episode.blind_fraction(), 'learning_samples': wall.samples,

@@ -333,7 +333,8 @@ def main(argv=None) -> int:
     return 0
 
 
-__all__ = ['explore', 'run_episode', 'model_message', 'agent_model', 'oracle_path_length', 'success', 'random_task', 'sensor2_goal_reading',
+__all__ = ['explore', 'run_episode', 'model_message', 'agent_model', 'group_range', 'oracle_path_length', 'success',
+           'random_task', 'sensor2_goal_reading',
            'PAPER_START', 'PAPER_GOAL_POSES', 'wall_relative_state']
 
 if __name__ == '__main__':

@@ -13,8 +13,8 @@ class LocalPCADimension:
     `variance_threshold` of the variance in neighbourhoods of `n_neighbors` samples, voted over `n_centres` random
     centres (local, so a curved 2-D surface in 3-D still counts as 2-D) - counting only the components whose
     variance grows at least `growth` times in the neighbourhood of `scale_factor` x `n_neighbors` samples around the
-    same centre (0: no such check). Along the samples' own directions the variance grows with the neighbourhood (about `scale_factor`
-    times on a surface); reading noise has the same variance at every scale. Without that check 1 % reading noise
+    same centre (0: no such check). Along the samples' own directions the variance grows with the neighbourhood
+    (about `scale_factor` times on a surface); reading noise has the same variance at every scale. Without that check 1 % reading noise
     (15 mm on the front sensors) filled the third direction of the 30-sample neighbourhoods and every noisy
     exploration read 3-D; with it, 80 explorations (four robots, both layouts, clean and noisy) read 2-D, a solid
     volume 3-D and a curve 1-D. At most `max_samples` samples (drawn at random) are used: the more samples, the

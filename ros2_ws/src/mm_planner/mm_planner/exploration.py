@@ -9,8 +9,8 @@ inside sensor-1 range, a random rotation / run / rotation leaves the range (ofte
 undoes the segments in a different order, so it comes back near - not exactly at - where it left; if that does not
 bring sensor 1 back, it retraces every command since it left (differential drive is exactly reversible), which
 guarantees the return without any world model. A robot that starts where sensor 1 does not see the wall searches for
-it first (straight rays out and back, each longer than the last). An excursion that brought sensor 2 into range is remembered (its
-segments, in steps) and, with probability `repeat_probability`, a later excursion repeats one of those with each
+it first (straight rays out and back, each longer than the last). An excursion that brought sensor 2 into range is
+remembered (its segments, in steps) and, with probability `repeat_probability`, a later excursion repeats one of those with each
 segment's length jittered: sensor 2's range may be a small target that random excursions rarely hit, and what reached
 it once reaches it again from a similar exit. Practice: while an excursion has sensor 2 in range, the robot now
 and then inserts a few short random turns and drives followed by their exact reverse, so that sensor 2's Jacobians
