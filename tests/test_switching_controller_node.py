@@ -225,16 +225,19 @@ def test_invalid_goals_are_rejected_with_a_reason(learned):
                                           ([0.2, INF], SensorGoal.SENSOR2, 0.0),
                                           ([-0.1, 0.2], SensorGoal.SENSOR2, 0.0),
                                           ([0.2, 0.2], SensorGoal.SENSOR2, math.nan),
-                                          ([0.2, 0.2], SensorGoal.SENSOR2, 0.5)):
+                                          ([0.2, 0.2], SensorGoal.SENSOR2, -0.01)):
             response = rig.call(reading, group, tolerance)
             assert not response.accepted, (reading, group, tolerance)
             assert response.message and response.message != 'accepted'
         assert rig.node.agent.goal is None and rig.node.agent.controller is None
-        # With the model the node knows what sensor 2 can read (its sensors' range, 0.25 m): a goal of 50 m is not.
+        # With the model the node knows what sensor 2 can read (its sensors' range, 0.25 m): a goal of 50 m is not,
+        # nor a tolerance of 0.5 m.
         rig.model_pub.publish(learned[0])
         assert rig.ros.spin_until(lambda: rig.phase() == 'WAITING_FOR_GOAL', timeout=10)
         response = rig.call([50.0, 50.0])
         assert not response.accepted and 'outside what sensor 2 reads' in response.message
+        response = rig.call([0.2, 0.2], tolerance=0.5)           # as wide as what sensor 2 reads: any reading
+        assert not response.accepted and 'span of what sensor 2 reads' in response.message
         assert rig.call(sensor2_goal_reading(WheeledRobot(), (0.0, 0.2, 0.0))).accepted
     finally:
         rig.ros.close()
