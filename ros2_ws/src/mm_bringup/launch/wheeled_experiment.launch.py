@@ -3,21 +3,34 @@
     ros2 launch mm_bringup wheeled_experiment.launch.py
     ros2 launch mm_bringup wheeled_experiment.launch.py record:=true bag:=results/wheeled_bag overwrite:=true
     ros2 launch mm_bringup wheeled_experiment.launch.py lockstep:=false       # simulator free-running
+    ros2 launch mm_bringup wheeled_experiment.launch.py composed:=true        # the three nodes in one process
 
 The simulator owns /clock; the learning and control nodes run with use_sim_time:=true. Parameter files: the
 simulator reads mm_sim/config/wheeled_sim.yaml; the other nodes read <pkg>/config/<executable>.yaml when that file is
 installed, or the file given by their *_params argument, else their built-in defaults. Ctrl-C (SIGINT) stops every
-node; the recorder finalises metadata.yaml and the MCAP file on the way out.
+node; the recorder finalises metadata.yaml and the MCAP file on the way out. With composed:=true the three nodes
+run in one process (mm_bringup wheeled_container: same nodes and topics, a faster loop); it reads the same three
+parameter files (each keyed by its node's name) and keeps the simulator on its own clock whatever use_sim_time says.
 """
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 
 from mm_common.launch_helpers import (launch_bool, lockstep_overrides, package_config, params_argument,
-                                      recorder_actions, recorder_arguments, screen_node)
+                                      params_file, recorder_actions, recorder_arguments, screen_node)
 
 
 def _launch_graph(context, *args, **kwargs):
     use_sim_time = launch_bool(context, 'use_sim_time', default=True)
+    if launch_bool(context, 'composed', default=False):
+        from launch_ros.actions import Node
+        files = [params_file(context, 'sim_params', 'mm_sim', 'wheeled_sim.yaml'),
+                 params_file(context, 'manifold_params', 'mm_manifold', 'sensor_manifold.yaml'),
+                 params_file(context, 'controller_params', 'mm_planner', 'switching_controller.yaml')]
+        # a dict of parameters reaches every node of the process: only lockstep, which only the simulator has
+        return [Node(package='mm_bringup', executable='wheeled_container', output='screen',
+                     parameters=[f for f in files if f] + ([lockstep_overrides(context)]
+                                                            if lockstep_overrides(context) else []))
+                ] + recorder_actions(context)
     return [
         screen_node(context, 'mm_sim', 'wheeled_sim', 'sim_params', lockstep_overrides(context)),
         screen_node(context, 'mm_manifold', 'sensor_manifold', 'manifold_params', {'use_sim_time': use_sim_time}),
@@ -35,6 +48,8 @@ def generate_launch_description():
         DeclareLaunchArgument('lockstep', default_value='',
                               description='Simulator timing: true = lockstep, false = free-running, '
                                           'empty = as in sim_params'),
+        DeclareLaunchArgument('composed', default_value='false',
+                              description='Run the three nodes in one process (mm_bringup wheeled_container)'),
         DeclareLaunchArgument('use_sim_time', default_value='true',
                               description='Learning and control nodes follow the simulator /clock'),
         *recorder_arguments('results/wheeled_experiment_bag'),
