@@ -16,7 +16,8 @@ from mm_manifold.sample_assembly import Resent, Sample, SampleAssembler
 from mm_manifold.sample_log import SampleLog
 from mm_common.wheeled_sensors import SENSOR1, SENSOR2
 from mm_manifold.sensor_manifold import (SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SensorManifoldModel,
-                                         StateTracker, find_excursions, group_in_range, refit_problem)
+                                         StateTracker, find_excursions, group_in_range, measurement_gain,
+                                         refit_problem)
 from mm_manifold.virtual_space import (Excursion, ExtrapolatedField, VirtualSensorSpace, integrate_batch,
                                        reentry_sensitivity)
 from mm_planner.exploration import UNDIRECTED
@@ -413,6 +414,31 @@ def test_sensor2_reading_noise_is_learned(model, noisy_model, robot):
     assert np.all(model.sensor2_noise_ < 0.1 * true_std)                        # noise-free readings: ~0
 
 
+def test_sensor1_measurement_gain_is_learned_from_the_readings(model, noisy_model, noisy_log, robot):
+    """Clean readings are used as they are (gain exactly 1: the clean results stay what they were); noisy ones are
+    blended with the prediction, with the gain a Kalman filter would reach for their noise and motion."""
+    assert model.sensor1_gain_ == 1.0
+    assert 0.3 < noisy_model.sensor1_gain_ < 0.8
+    # noise only: the gain falls; the readings of a robot standing still are all noise, nothing to follow
+    rng = np.random.default_rng(0)
+    steady = np.full((500, 3), 0.5) + rng.normal(0, 0.01, (500, 3))
+    assert measurement_gain(steady, np.ones(500, dtype=bool)) < 0.5
+    assert measurement_gain(noisy_log.readings[:10, list(SENSOR1)], np.ones(10, dtype=bool)) == 1.0   # too few
+    tracker = StateTracker(noisy_model)
+    reading = robot.read((0.0, 0.6, -math.pi / 2), noisy=False)
+    tracker.update(reading, None)
+    moved = reading.copy()
+    moved[list(SENSOR1)] += 0.05                                    # a jump the commands do not explain
+    _, blended, _, _ = tracker.update(moved, np.zeros(2))
+    raw = noisy_model.grid_.transform(moved[list(SENSOR1)][None])[0]
+    before = noisy_model.grid_.transform(reading[list(SENSOR1)][None])[0]
+    assert np.linalg.norm(blended - before) < 0.9 * np.linalg.norm(raw - before)   # only part of the jump taken
+    clean = StateTracker(model)
+    clean.update(reading, None)
+    np.testing.assert_allclose(clean.update(moved, np.zeros(2))[1],
+                               model.grid_.transform(moved[list(SENSOR1)][None])[0], atol=1e-12)   # all of it
+
+
 # --- persistence -------------------------------------------------------------------------------------------------
 def test_save_load_round_trip(model, tmp_path, robot):
     path = tmp_path / 'sub' / 'model.npz'
@@ -440,6 +466,7 @@ def test_save_load_round_trip(model, tmp_path, robot):
                                                                                                    [1.0, -2.0]))
     assert loaded.virtual_.reentry_rms_after_ == model.virtual_.reentry_rms_after_
     np.testing.assert_array_equal(loaded.sensor2_noise_, model.sensor2_noise_)
+    assert loaded.sensor1_gain_ == model.sensor1_gain_
 
 
 def test_load_rejects_missing_corrupt_and_foreign_files(model, tmp_path):
@@ -497,6 +524,7 @@ def test_load_rejects_missing_corrupt_and_foreign_files(model, tmp_path):
                                 'no sensor-1 region'),
         'string array': ({'grid_mean': np.array(['a', 'b', 'c'])}, 'grid_mean'),
         'negative noise': ({'meta': np.array(json.dumps({**meta, 'sensor2_noise': [-1.0, 0.0]}))}, 'sensor2_noise'),
+        'gain above 1': ({'meta': np.array(json.dumps({**meta, 'sensor1_gain': 1.5}))}, 'sensor1_gain'),
         'zero scale': ({'field1_scale': np.zeros(2)}, 'field1_scale'),
     }
     for case, (changes, reason) in crafted.items():

@@ -85,9 +85,13 @@ def evaluate(robot: WheeledRobot, dt: float, model, tasks: int, tolerance: float
 
 
 def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, model_params=None,
-             explorer_params=None, rehearsals=None) -> Dict:
+             explorer_params=None, rehearsals=None, noisy: bool = False) -> Dict:
+    """Learn as the graph does and run the tasks (`noisy`: the benchmark's reading noise and dropout, goals and
+    success judged on noise-free readings as there)."""
     t0 = time.monotonic()
-    robot, dt, start = robot_variant(layout, robot_name)
+    noise = dict(noise_range_fraction=NOISE['std_fraction_of_max_range'], dropout=NOISE['dropout'],
+                 random_state=seed) if noisy else {}
+    robot, dt, start = robot_variant(layout, robot_name, **noise)
     learned = learn(robot, steps, dt, seed, start, max_samples=max_samples, model_params=model_params,
                     explorer_params=explorer_params, rehearsals=rehearsals)
     model, samples = learned.fitted, learned.samples
@@ -96,7 +100,7 @@ def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, mod
     # never acts on it).
     rate, ratio, err = evaluate(robot, dt, model, tasks, tolerance)
     ready = bool(model is not None and model.ready)
-    return dict(layout=layout, robot=robot_name, seed=seed, exploration_steps=steps, samples=samples,
+    return dict(layout=layout, robot=robot_name, noisy=noisy, seed=seed, exploration_steps=steps, samples=samples,
                 explored=learned.explored, ready=ready,
                 heldout_sensor2_error=getattr(model, 'heldout_sensor2_error_', math.inf),
                 heldout_limit=getattr(model, 'heldout_limit_', 0.0),
@@ -161,7 +165,7 @@ def summarize(rows: List[Dict]) -> List[Dict]:
     by_setting: Dict[str, List[Dict]] = {}
     for row in rows:
         key = {'exploration_steps': row['exploration_steps'], 'explorer': row['explorer'],
-               'rehearsals': row.get('rehearsals'), 'model': row.get('model', {})}
+               'rehearsals': row.get('rehearsals'), 'model': row.get('model', {}), 'noisy': row.get('noisy', False)}
         by_setting.setdefault(json.dumps(key, sort_keys=True), []).append(row)
     summary = [dict(**json.loads(key), cells=len(cells), ready=sum(r['ready'] for r in cells),
                     mean_success=round(float(np.mean([r['success'] for r in cells])), 3),
@@ -187,6 +191,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help='SensorManifoldModel hyperparameter sets to compare (e.g. {"heldout_bound": 1.0})')
     parser.add_argument('--rehearsals', nargs='+', type=int, default=[None],
                         help="WallAgent rehearsals to compare (default: the agent's own default)")
+    parser.add_argument('--noisy', action='store_true',
+                        help="with the benchmark's reading noise and dropout (bench.wall_task.NOISE)")
     parser.add_argument('--search', action='store_true',
                         help='measure only how soon sensor 1 first sees the wall from 1 m (with --robots front_0.75m '
                         'it starts beyond its range), per --explorer set, within --steps')
@@ -237,7 +243,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                         for model_params in args.model:
                             row = run_cell(layout, robot, seed, args.steps, args.tasks, args.tolerance,
                                            args.max_samples, model_params=model_params, explorer_params=params,
-                                           rehearsals=rehearsals)
+                                           rehearsals=rehearsals, noisy=args.noisy)
                             row.update(explorer=params, rehearsals=rehearsals, model=model_params)
                             print(json.dumps(row), flush=True)
                             rows.append(row)
