@@ -61,7 +61,7 @@ class RandomExplorer:
                  repeat_jitter: float = 0.2, approach_probability: float = 1.0, near: float = 0.08 / 1.5,
                  far: float = 1.25 / 1.5, back_off_below: float = 0.25 / 1.5, mid_range_above: float = 0.35 / 1.5,
                  approach_bias: float = 0.55, max_retrace: int = 400, practice_probability: float = 0.15,
-                 practice_segments: int = 4, excursion_share: float = 0.3, search_growth: float = 1.1,
+                 practice_segments: int = 4, excursion_share: float = 0.3, search_growth: float = 2.0,
                  random_state: Optional[int] = None):
         self.turn_speed = turn_speed
         self.drive_speed = drive_speed
@@ -103,6 +103,7 @@ class RandomExplorer:
         self.last_reflex_step = -10 ** 9
         self.seen_sensor1 = False                 # sensor 1 has had the wall in range at least once
         self.search_steps = 0                     # length of the last search ray [steps] (0: none yet)
+        self.search_sighting = math.inf           # nearest front reading of the last step (inf: none)
         self.last_reflex_bumped = False
         self.wedge_turn = 0.0
 
@@ -139,7 +140,10 @@ class RandomExplorer:
         turns drift away. So: rays from where the search stands, each a random turn (none before the first), a
         straight run and the same run backwards, each `search_growth` times as long as the last; a ray heading
         toward the wall finds it once it is long enough, and no ray leaves the robot further away. Where part of
-        sensor 1 sees the wall, command() drives on toward it and the next rays start short again."""
+        sensor 1 sees the wall while the robot drives ahead and the sighting comes nearer, command() drives on, and
+        the next rays start short again. (Driving on at any partial sighting failed twice: parallel to the wall with
+        one sensor seeing it the robot drove along the wall for good, and a sighting during a ray's turn cut the turn
+        short of facing the wall.)"""
         if self.search_steps:
             # a heading of its own, not a small step from the last one: up to four of an excursion's longest turns
             turn = self.rng.choice([-1.0, 1.0]) * self.turn_speed
@@ -280,12 +284,17 @@ class RandomExplorer:
         elif (self.mode == 'excursion' and in_range2 and not too_close and self.plan
               and self.rng.random() < self.practice_probability):
             self._practice()
-        if self.mode == 'search' and np.any(np.isfinite(front)) and not too_close:
-            # part of sensor 1 sees the wall: drive on toward it until all of it does or a reflex ends the ray;
-            # the next rays (each with its turn) start short again
-            self.plan.clear()
-            self.plan.extend(self._segment([self.drive_speed] * 2, 1))
+        sighted = front[np.isfinite(front)]
+        if self.mode == 'search' and sighted.size:
+            # Part of sensor 1 sees the wall. Driving ahead and coming nearer: drive on toward it until all of it
+            # does or a reflex ends the ray (not during a turn, which must be completed to face the wall, nor along
+            # the wall, where the sighting comes no nearer); the next rays start short again.
+            ahead = bool(np.all(self.last_command == self.drive_speed))
+            if ahead and not too_close and sighted.min() < self.search_sighting:
+                self.plan.clear()
+                self.plan.extend(self._segment([self.drive_speed] * 2, 1))
             self.search_steps = self.hold_steps[1]
+        self.search_sighting = sighted.min() if sighted.size else math.inf
         if not self.plan:
             if not self.seen_sensor1:
                 self._search()
