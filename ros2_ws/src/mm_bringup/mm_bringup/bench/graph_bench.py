@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from mm_common.rosbag import read_metadata
 from mm_common.ros_harness import RosHarness
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, Range
 from std_msgs.msg import Float64MultiArray, Header
 
@@ -199,6 +199,38 @@ def wheeled_graph(steps: int, work: Path, composed: bool = False) -> dict:
     return {f'composed_{k}': v for k, v in result.items()} if composed else result
 
 
+def composed_unobserved(steps: int, log_dir: Path) -> dict:
+    """The composed loop (mm_bringup wheeled_container) exploring `steps` steps with no other process taking a
+    message of every step: from the stamp of the simulator's `ready` log line (it keeps the system clock) to the
+    arrival here of the controller's `EXPLORING -> LEARNING` line, both on /rosout and the system clock (the loop's
+    start-up and the delivery inside the span: the rate is if anything low). Every process that takes the state
+    each step (graph_bench's experimenter above, a recorder) costs the loop its deliveries."""
+    from rcl_interfaces.msg import Log
+    marks = {}
+
+    def on_log(msg: Log) -> None:
+        if msg.name == 'wheeled_sim' and 'wheeled_sim ready' in msg.msg:
+            marks.setdefault('ready', msg.stamp.sec + msg.stamp.nanosec * 1e-9)
+        elif msg.name == 'switching_controller' and 'EXPLORING -> LEARNING' in msg.msg:
+            marks.setdefault('learning', time.time())
+    ros = RosHarness()
+    try:
+        node = ros.node('bench_log_listener')
+        # /rosout keeps each node's last lines for late subscribers (transient local): none is missed
+        node.create_subscription(Log, '/rosout', on_log, QoSProfile(
+            depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        with ProcessGraph(log_dir=log_dir) as graph:
+            container = graph.start('mm_bringup', 'wheeled_container',
+                                    {'switching_controller:exploration_steps': steps,
+                                     'sensor_manifold:learn_after': steps, 'sensor_manifold:model_path': '',
+                                     'sensor_manifold:samples_path': '', 'wheeled_sim:republish_period': 0.5})
+            assert ros.spin_until(lambda: len(marks) == 2, 120.0), graph.log_tail(container)
+    finally:
+        ros.close()
+    return {'composed_unobserved_steps_per_s': steps / (marks['learning'] - marks['ready']),
+            'composed_unobserved_steps': steps}
+
+
 def arm_graph(frames: int, work: Path) -> dict:
     """arm_sim + image_embedding + dp_planner (three processes) exploring `frames` camera frames in lockstep, the
     learner extracting SIFT keypoints from every 400x400 frame: frames/s from the 50th frame to the end of the
@@ -265,6 +297,9 @@ def run(output_dir: Path, quick: bool) -> dict:
     result['graph_over_lockstep'] = result['graph_steps_per_s'] / result['lockstep_steps_per_s']
     result.update(wheeled_graph(1000 if quick else 5000, work / 'composed', composed=True))
     result['composed_graph_over_lockstep'] = result['composed_graph_steps_per_s'] / result['lockstep_steps_per_s']
+    result.update(composed_unobserved(1000 if quick else 5000, work / 'unobserved'))
+    result['composed_unobserved_over_lockstep'] = (result['composed_unobserved_steps_per_s']
+                                                   / result['lockstep_steps_per_s'])
     result.update(arm_graph(200 if quick else 500, work / 'arm'))
     result.update(offline_costs(2000 if quick else 10000))
     result.update(pingpong_reference(steps))
