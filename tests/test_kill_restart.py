@@ -14,11 +14,16 @@ import time
 from rosgraph_msgs.msg import Clock
 
 from mm_bringup.wall_experiment import PAPER_START, sensor2_goal_reading
-from mm_bringup.wall_graph import DONE, LOOP_QOS, WallGraph
+from mm_bringup.wall_graph import DONE, LOOP_QOS, LearningFailed, WallGraph
 from mm_msgs.msg import ControllerStatus
 from mm_sim.wheeled_model import WheeledRobot
 
-EXPLORATION = 3000      # the benchmark's budget; with 2 000 one kill timing gave a model that rehearsed 5/5 and failed the task
+# The node's default budget. The kills change what is explored (the restarted controller explores from its seed's
+# beginning), so each run learns from other data: with 3 000 steps 2 runs in about 16 ended without the paper's
+# task (a model rehearsed 5/5 that then missed it; one never ready within the cap), as 3 000-step models on this
+# layout sometimes do (results/wall_task.json: overlap, default robot, seed 1004 0.925); at 10 000 all five seeds
+# reach 1.0. What learning needs is the benchmark's to measure; this test is about the restarts.
+EXPLORATION = 10000
 DT = 0.05
 RESUMED_STEPS = 30          # steps beyond the kill that show the loop runs again
 RECOVERY_TIMEOUT = 30.0     # wall seconds; the simulator re-sends its step every 0.5 s
@@ -94,10 +99,11 @@ def test_killed_nodes_rejoin_and_the_paper_task_completes(tmp_path):
             # Learning may take several fits (a model whose held-out predictions miss the bound explores on), so
             # the bound is generous: the loop stalling for good is what this test must catch.
             wall.wait_learned(timeout=600.0)
-        except TimeoutError as exc:
-            raise AssertionError(f'the graph stalled after the restarts at step {_step(wall)}: controller phase '
+        except (TimeoutError, LearningFailed) as exc:
+            logs = '\n'.join(f'--- {n.label}:\n{wall.graph.log_tail(n, 40)}' for n in wall.nodes)
+            raise AssertionError(f'no model after the restarts (step {_step(wall)}, controller phase '
                                  f'{wall.status.phase_name if wall.status else None!r}, manifold samples '
-                                 f'{wall.samples} (learn_after {EXPLORATION})') from exc
+                                 f'{wall.samples}, learn_after {EXPLORATION}): {exc}\n{logs}') from exc
         episode = wall.run_episode(PAPER_START, sensor2_goal_reading(robot, (0.0, 0.25, 0.0)), 0.005,
                                    timeout=120.0)
     print(f'paper task after the kills: {episode.phase} ({episode.detail}), {len(episode.poses)} poses')

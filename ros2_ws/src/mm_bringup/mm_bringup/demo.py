@@ -32,7 +32,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from mm_msgs.msg import ControllerStatus
 
 from mm_bringup.arm_demo import run_arm_demo
 from mm_bringup.bag_tool import format_info
@@ -92,18 +91,17 @@ def explore_with_progress(wall: WallGraph, steps: int, every_s: float = 2.0) -> 
 
 def learn_with_progress(wall: WallGraph, every_s: float = 5.0) -> None:
     """Wait until the controller waits for a goal: a line whenever its phase changes (a model that is not ready sends
-    it exploring on, with the reason) and every `every_s` seconds."""
+    it exploring on, with the reason) and every `every_s` seconds; LearningFailed if the controller gives up."""
     last = {'phase': None, 'at': time.monotonic()}
 
-    def learned() -> bool:
-        status, now = wall.status, time.monotonic()
+    def progress(status) -> None:
+        now = time.monotonic()
         if status is not None and (status.phase_name != last['phase'] or now - last['at'] >= every_s):
             reason = f' ({status.detail})' if status.phase_name != last['phase'] and status.detail else ''
             log(f'{status.phase_name.lower()}: {wall.samples} samples{reason}')
             last.update(phase=status.phase_name, at=now)
-        return status is not None and status.phase == ControllerStatus.PHASE_WAITING_FOR_GOAL
 
-    wall.spin_until(learned, 1800.0, 'exploration and learning')
+    wall.wait_learned(1800.0, on_status=progress)
 
 
 def wall_experiment(graph: ProcessGraph, work: Path, exploration_steps: int, figures: Path, phases: Phases,

@@ -32,6 +32,10 @@ DONE = (ControllerStatus.PHASE_GOAL_REACHED, ControllerStatus.PHASE_FAILED)
 BLIND_REPORT = re.compile(r"longest blind stretch (?P<steps>\d+) steps, [\d.]+ x the route's predicted (?P<predicted>\d+)")
 
 
+
+class LearningFailed(RuntimeError):
+    """The controller ended FAILED before any model was announced ready (it reached its exploration cap)."""
+
 @dataclass
 class GraphEpisode:
     poses: List[tuple] = field(default_factory=list)          # ground truth per step (evaluation only)
@@ -143,7 +147,8 @@ class WallGraph:
                                                     'exploration_steps': exploration_steps},
              ['/wheeled/wheel_velocity_controller/commands', '/wheeled/controller/status']),
             ('mm_manifold', 'sensor_manifold', {**sim_time, 'dt': dt, 'learn_after': exploration_steps,
-                                                'model_path': learner_path, 'samples_path': samples_path}, []),
+                                                'model_path': learner_path, 'samples_path': samples_path,
+                                                'range_input': 'grouped'}, []),
         ]
         sim_files = [a for f in sim_params_files for a in ('--params-file', str(f))]
         extra_args = {'wheeled_sim': ['--ros-args', *sim_files] if sim_files else []}
@@ -219,11 +224,19 @@ class WallGraph:
             self._check_alive()
         raise TimeoutError(f'timed out after {timeout:.0f} s waiting for {what}')
 
-    def wait_learned(self, timeout: float = 600.0) -> None:
-        """Exploration and learning happen on their own; wait until the controller waits for a goal."""
-        self.spin_until(lambda: self.status is not None
-                        and self.status.phase == ControllerStatus.PHASE_WAITING_FOR_GOAL, timeout,
-                        'exploration and learning')
+    def wait_learned(self, timeout: float = 600.0, on_status=None) -> None:
+        """Exploration and learning happen on their own; wait until the controller waits for a goal. Raises
+        LearningFailed as soon as the controller gives up (its exploration cap), with its reason, instead of waiting
+        out `timeout`. `on_status(status)` sees the status (possibly None) at every poll, e.g. for progress lines."""
+        def learned() -> bool:
+            if on_status is not None:
+                on_status(self.status)
+            if self.status is not None and self.status.phase == ControllerStatus.PHASE_FAILED:
+                raise LearningFailed(f'the controller gave up learning after {self.samples} samples: '
+                                     f'{self.status.detail}')
+            return self.status is not None and self.status.phase == ControllerStatus.PHASE_WAITING_FOR_GOAL
+
+        self.spin_until(learned, timeout, 'exploration and learning')
 
     def watch_ground_truth(self) -> None:
         """Subscribe to the ground-truth odometry (once) and wait until the simulator's publisher is matched, so the

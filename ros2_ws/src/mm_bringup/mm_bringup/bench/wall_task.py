@@ -109,6 +109,13 @@ def summarise(episodes: List[dict]) -> dict:
     }
 
 
+def unlearned_episode(detail: str) -> dict:
+    """The score of a task that could not start: no model was ever announced ready."""
+    return {'success': False, 'reached': False, 'final_error': math.inf, 'path_ratio': math.nan,
+            'blind_fraction': math.nan, 'steps': 0, 'wall_seconds': 0.0, 'final_heading': math.nan,
+            'longest_blind_steps': 0, 'longest_blind_ratio': None, 'detail': detail}
+
+
 def tasks_for(robot: WheeledRobot, task_seed: int, n_tasks: int):
     rng = np.random.default_rng(task_seed)
     return [random_task(rng, robot) for _ in range(n_tasks)]
@@ -132,9 +139,8 @@ def run_cell(layout: str, robot_name: str, seed: int, budget: int, noisy: bool, 
             'learning_detail': learned.detail}
     tasks = tasks_for(clean_robot, cell['task_seed'], n_tasks)
     if learned.model is None:
-        episodes = [{'success': False, 'reached': False, 'final_error': math.inf, 'path_ratio': math.nan,
-                     'longest_blind_steps': 0, 'longest_blind_ratio': None,
-                     'detail': f'no ready model after {learned.samples} samples: {learned.detail}'} for _ in tasks]
+        episodes = [unlearned_episode(f'no ready model after {learned.samples} samples: {learned.detail}')
+                    for _ in tasks]
     else:
         episodes = []
         for start, goal_pose in tasks:
@@ -220,20 +226,28 @@ def aggregate(cells: list) -> dict:
 
 # --- through the graph (the headline) ------------------------------------------------------------------------------
 def run_graph_cell(work_dir: Path, budget: int, seed: int, n_tasks: int, layout: str = 'paper') -> dict:
-    from mm_bringup.wall_graph import WallGraph
+    from mm_bringup.wall_graph import LearningFailed, WallGraph
     robot, dt = layout_robot(layout)
     task_seed = TASK_SEED_BASE + seed - 1000
     tasks = tasks_for(robot, task_seed, n_tasks)
     began = time.monotonic()
     with WallGraph(work_dir, exploration_steps=budget, seed=seed, dt=dt,
                    sim_params_files=[simulator_params_file(), layout_file(layout)]) as graph:
-        graph.wait_learned(timeout=1800.0)
+        try:
+            graph.wait_learned(timeout=1800.0)
+            failure = None
+        except LearningFailed as exc:
+            failure = str(exc)
         learning_seconds = time.monotonic() - began
         samples = graph.samples
-        paper = run_graph_task(graph, robot, PAPER_START, PAPER_GOAL_POSES[layout], PAPER_TOLERANCE)
-        episodes = [run_graph_task(graph, robot, start, goal_pose, TOLERANCE) for start, goal_pose in tasks]
+        if failure is not None:          # every task fails with the reason, as in run_cell
+            paper, *episodes = [unlearned_episode(failure) for _ in range(n_tasks + 1)]
+        else:
+            paper = run_graph_task(graph, robot, PAPER_START, PAPER_GOAL_POSES[layout], PAPER_TOLERANCE)
+            episodes = [run_graph_task(graph, robot, start, goal_pose, TOLERANCE) for start, goal_pose in tasks]
     cell = {'layout': layout, 'robot': 'default', 'exploration_seed': seed, 'exploration_budget': budget,
             'task_seed': task_seed, 'samples': int(samples), 'learning_wall_seconds': round(learning_seconds, 1),
+            'learning_failure': failure,
             'stalled_episodes': sum(e['detail'].startswith('stalled') for e in episodes + [paper]),
             'seconds_per_episode': float(np.mean([e['wall_seconds'] for e in episodes])), 'paper_task': paper}
     cell.update(summarise(episodes))
