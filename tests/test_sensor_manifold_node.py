@@ -1,14 +1,15 @@
 """The sensor manifold node in-process: five Range messages of one stamp make one sample and one ManifoldState; bad
 commands and readings are rejected and the next valid ones used; a saved model is loaded at start, published as a
 message on the latched model topic and used for the state; a corrupt model file means learning anew; a refit that is
-worse than the live model does not replace it; bad parameter updates are refused."""
+worse than the live model does not replace it; bad parameter updates are refused; with `range_input: grouped` one
+mm_msgs/RangeGroup per step gives the very samples the five topics give, and a bad group is dropped whole."""
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 from mm_common.ros_harness import RosHarness
-from mm_msgs.msg import JacobianEstimate, ManifoldState, ModelVerdict
+from mm_msgs.msg import JacobianEstimate, ManifoldState, ModelVerdict, RangeGroup
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -50,9 +51,11 @@ class Rig:
             self.client.create_subscription(ManifoldState, 'wheeled/manifold/state', self.states.append, QOS)
             self.client.create_subscription(JacobianEstimate, 'wheeled/manifold/jacobian', self.jacobians.append, QOS)
             self.ranges = [self.client.create_publisher(Range, f'wheeled/range/{n}', QOS) for n in SENSOR_NAMES]
+            self.group = self.client.create_publisher(RangeGroup, 'wheeled/ranges', QOS)
+            grouped = (params or {}).get('range_input') == 'grouped'
             self.cmd = self.client.create_publisher(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands',
                                                     QOS)
-            pubs = self.ranges + [self.cmd]
+            pubs = ([self.group] if grouped else self.ranges) + [self.cmd]
             assert self.ros.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs)
                                        and self.node.state_pub.get_subscription_count() > 0, timeout=10)
         except BaseException:
@@ -70,6 +73,21 @@ class Rig:
             msg.header.stamp.sec = sec
             msg.header.frame_id = SENSOR_NAMES[i]
             self.ranges[i].publish(msg)
+
+    def publish_group(self, sec, readings, **changes):
+        """One step's five readings as one RangeGroup (`changes`: fields of the group to spoil)."""
+        ranges = []
+        for i in range(5):
+            msg = Range(radiation_type=Range.INFRARED, min_range=0.005, max_range=1.5 if i < 3 else 0.25,
+                        range=float(readings[i]))
+            msg.header.stamp.sec = sec
+            msg.header.frame_id = SENSOR_NAMES[i]
+            ranges.append(msg)
+        group = RangeGroup(names=list(SENSOR_NAMES), ranges=ranges)
+        group.header.stamp.sec = sec
+        for name, value in changes.items():
+            setattr(group, name, value)
+        self.group.publish(group)
 
     def command(self, data):
         self.cmd.publish(Float64MultiArray(data=[float(v) for v in data]))
@@ -490,3 +508,46 @@ def test_a_clock_that_went_back_starts_a_new_chain_and_old_stamps_stay_rejected(
         assert state.header.stamp.sec == 4 and state.samples == 3 and rig.node.continuous == [True, False]
     finally:
         rig.ros.close()
+
+
+def test_grouped_readings_give_the_samples_of_the_five_topics_and_a_bad_group_is_dropped_whole():
+    """range_input: grouped (what the graph uses: one delivery per step instead of five): the same steps and commands
+    as five Range topics or as RangeGroups make the same samples; a group that is not one valid reading of each
+    sensor at the group's stamp is rejected with a reason and the next valid group is a sample."""
+    robot = WheeledRobot()
+    poses = [(0.0, 0.3 + 0.02 * k, -math.pi / 2 + 0.3 * k) for k in range(6)]
+    runs = {}
+    for mode in ('per_sensor', 'grouped'):
+        rig = Rig({'learn_after': 100000, 'range_input': mode})
+        try:
+            for k, pose in enumerate(poses):
+                reading = robot.read(pose, noisy=False)
+                if mode == 'grouped':
+                    rig.publish_group(k + 1, reading)
+                else:
+                    rig.publish_step(k + 1, reading)
+                rig.wait_states(k + 1)
+                rig.command([1.0, -1.0 + 0.1 * k])
+                assert rig.ros.spin_until(lambda: len(rig.node.assembler.commands_since_sample) == 1)
+            runs[mode] = (np.array(rig.node.readings), np.array(rig.node.commands), list(rig.node.continuous))
+            if mode == 'grouped':
+                reading = robot.read(poses[0], noisy=False)
+                spoilt = [dict(names=list(SENSOR_NAMES[:4])), dict(names=list(SENSOR_NAMES[:4]) + ['front_left']),
+                          dict(names=['a', 'b', 'c', 'd', 'e']), dict(ranges=[]),
+                          dict(header=RangeGroup().header)]               # stamp 0: the readings' stamps differ
+                for n, changes in enumerate(spoilt):
+                    before = rig.node.rejected
+                    rig.publish_group(20, reading, **changes)
+                    assert rig.ros.spin_until(lambda: rig.node.rejected == before + 1), changes
+                assert len(rig.states) == len(poses)                       # nothing came of the spoilt groups
+                bad = Range(radiation_type=Range.INFRARED, min_range=0.005, max_range=0.25, range=3.0)
+                group = RangeGroup(names=list(SENSOR_NAMES), ranges=[bad] * 5)
+                group.header.stamp.sec = bad.header.stamp.sec = 20
+                rig.group.publish(group)
+                assert rig.ros.spin_until(lambda: rig.node.rejected == before + 2)
+                rig.publish_group(20, reading)
+                assert rig.wait_states(len(poses) + 1).header.stamp.sec == 20
+        finally:
+            rig.ros.close()
+    for a, b in zip(runs['per_sensor'], runs['grouped']):
+        np.testing.assert_array_equal(a, b)

@@ -11,29 +11,34 @@ installed, or the file given by their *_params argument, else their built-in def
 node; the recorder finalises metadata.yaml and the MCAP file on the way out. With composed:=true the three nodes
 run in one process (mm_bringup wheeled_container: same nodes and topics, a faster loop); it reads the same three
 parameter files (each keyed by its node's name) and keeps the simulator on its own clock whatever use_sim_time says.
+sensor_manifold takes the simulator's grouped readings (range_input:=grouped, one message per step) unless
+range_input:=per_sensor (the five Range topics).
 """
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 
-from mm_common.launch_helpers import (launch_bool, lockstep_overrides, package_config, params_argument,
+from mm_common.launch_helpers import (launch_arg, launch_bool, lockstep_overrides, package_config, params_argument,
                                       params_file, recorder_actions, recorder_arguments, screen_node)
 
 
 def _launch_graph(context, *args, **kwargs):
     use_sim_time = launch_bool(context, 'use_sim_time', default=True)
+    range_input = {'range_input': launch_arg(context, 'range_input')}
     if launch_bool(context, 'composed', default=False):
         from launch_ros.actions import Node
         files = [params_file(context, 'sim_params', 'mm_sim', 'wheeled_sim.yaml'),
                  params_file(context, 'manifold_params', 'mm_manifold', 'sensor_manifold.yaml'),
                  params_file(context, 'controller_params', 'mm_planner', 'switching_controller.yaml')]
-        # a dict of parameters reaches every node of the process: only lockstep, which only the simulator has
+        # a dict of parameters reaches every node of the process: only lockstep, which only the simulator has, and
+        # range_input, which only the learner has
         return [Node(package='mm_bringup', executable='wheeled_container', output='screen',
-                     parameters=[f for f in files if f] + ([lockstep_overrides(context)]
-                                                            if lockstep_overrides(context) else []))
+                     parameters=[f for f in files if f] + [range_input] + ([lockstep_overrides(context)]
+                                                                          if lockstep_overrides(context) else []))
                 ] + recorder_actions(context)
     return [
         screen_node(context, 'mm_sim', 'wheeled_sim', 'sim_params', lockstep_overrides(context)),
-        screen_node(context, 'mm_manifold', 'sensor_manifold', 'manifold_params', {'use_sim_time': use_sim_time}),
+        screen_node(context, 'mm_manifold', 'sensor_manifold', 'manifold_params',
+                    {'use_sim_time': use_sim_time, **range_input}),
         screen_node(context, 'mm_planner', 'switching_controller', 'controller_params',
                     {'use_sim_time': use_sim_time}),
     ] + recorder_actions(context)
@@ -50,6 +55,9 @@ def generate_launch_description():
                                           'empty = as in sim_params'),
         DeclareLaunchArgument('composed', default_value='false',
                               description='Run the three nodes in one process (mm_bringup wheeled_container)'),
+        DeclareLaunchArgument('range_input', default_value='grouped',
+                              description="sensor_manifold's readings: grouped (wheeled_sim's wheeled/ranges, one "
+                                          'message per step) or per_sensor (the five wheeled/range/<name> topics)'),
         DeclareLaunchArgument('use_sim_time', default_value='true',
                               description='Learning and control nodes follow the simulator /clock'),
         *recorder_arguments('results/wheeled_experiment_bag'),

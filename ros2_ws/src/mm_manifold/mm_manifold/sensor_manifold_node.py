@@ -3,7 +3,10 @@
     ./mm run mm_manifold sensor_manifold --ros-args -p use_sim_time:=true -p model_path:=results/wall_model.npz
 
 Inputs (what the robot senses and commands, nothing else): the five `wheeled/range/*` readings, grouped by stamp into
-one sample per simulator step, and its own `wheeled/wheel_velocity_controller/commands` (the rule below lives in
+one sample per simulator step (`range_input: per_sensor`, the default), or the same five Range messages of a step in one
+mm_msgs/RangeGroup on `wheeled/ranges` (`range_input: grouped`, what wheeled_sim also publishes: one delivery per step
+instead of five, the lockstep loop's rate, README issue 14), and its own `wheeled/wheel_velocity_controller/commands`
+(the rule below lives in
 mm_manifold.sample_assembly, which a bag replay uses too). The command that moved the robot to a sample travels on
 another topic and may arrive after the sample's readings, so a sample with no command yet waits for it - for as long
 as it takes, never decided by a wall-clock timeout (the learned data must not depend on machine load). It stops
@@ -43,7 +46,7 @@ from builtin_interfaces.msg import Time
 from mm_common.node_utils import clock_went_back, declare, reject_non_finite, run_node
 from mm_common.qos import LOOP_QOS  # RELIABLE, deep history: see mm_common/qos.py
 from mm_common.wheeled_sensors import SENSOR1, SENSOR2, SENSOR_NAMES
-from mm_msgs.msg import JacobianEstimate, ManifoldState, ModelVerdict
+from mm_msgs.msg import JacobianEstimate, ManifoldState, ModelVerdict, RangeGroup
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
@@ -63,6 +66,11 @@ from mm_manifold.sensor_manifold import (SPACE_NONE, SPACE_SENSOR1, SPACE_SENSOR
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 SPACE_NAMES = {SPACE_SENSOR1: 'sensor1_grid', SPACE_VIRTUAL: 'virtual_sensor1', SPACE_SENSOR2: 'sensor2'}
 MAX_STAMP_AHEAD = 60.0       # [s] a reading stamped further ahead of this node's clock (or newest sample) is forged
+RANGE_INPUTS = ('per_sensor', 'grouped')
+
+
+def _ns(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
 def range_problem(msg: Range) -> Optional[str]:
@@ -104,6 +112,11 @@ class SensorManifold(Node):
         self.stall_warning = declare(self, 'stall_warning', 2.0, 'Wall seconds a sample may wait for its command '
                                      'before a (throttled) warning names what is missing; the wait goes on',
                                      min_value=0.1, max_value=3600.0)
+        self.range_input = declare(self, 'range_input', 'per_sensor', "Where the readings come from: 'per_sensor' "
+                                   "(the five wheeled/range/<name> topics) or 'grouped' (one mm_msgs/RangeGroup per "
+                                   'step on wheeled/ranges)', read_only=True)
+        if self.range_input not in RANGE_INPUTS:
+            raise ValueError(f"range_input must be one of {', '.join(RANGE_INPUTS)}, got {self.range_input!r}")
         if len(self.grid_shape) != 2 or min(self.grid_shape) < 3:
             raise ValueError('grid_shape must be [rows, cols], each >= 3')
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -129,9 +142,12 @@ class SensorManifold(Node):
         self.state_pub = self.create_publisher(ManifoldState, 'wheeled/manifold/state', LOOP_QOS)
         self.jacobian_pub = self.create_publisher(JacobianEstimate, 'wheeled/manifold/jacobian', LOOP_QOS)
         self.model_pub = self.create_publisher(ModelMsg, 'wheeled/manifold/model', LATCHED_QOS)
-        for index, name in enumerate(SENSOR_NAMES):
-            self.create_subscription(Range, f'wheeled/range/{name}',
-                                     lambda msg, i=index: self._on_range(i, msg), LOOP_QOS)
+        if self.range_input == 'grouped':
+            self.create_subscription(RangeGroup, 'wheeled/ranges', self._on_range_group, LOOP_QOS)
+        else:
+            for index, name in enumerate(SENSOR_NAMES):
+                self.create_subscription(Range, f'wheeled/range/{name}',
+                                         lambda msg, i=index: self._on_range(i, msg), LOOP_QOS)
         self.create_subscription(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands', self._on_command,
                                  LOOP_QOS)
         self.create_subscription(ModelVerdict, 'wheeled/controller/model_verdict', self._on_verdict, LATCHED_QOS)
@@ -377,15 +393,39 @@ class SensorManifold(Node):
         return None
 
     def _on_range(self, index: int, msg: Range) -> None:
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        stamp = _ns(msg.header.stamp)
         problem = range_problem(msg) or self._stamp_problem(stamp)
         if problem:
             self._reject(f'{SENSOR_NAMES[index]} reading', problem)
             return
-        self.sensor_limits[index] = (float(msg.min_range), float(msg.max_range))
-        self._publish_model()
+        self._take_readings(stamp, [(index, msg)])
+
+    def _on_range_group(self, msg: RangeGroup) -> None:
+        """A step's five readings at once: all usable, or the step is dropped whole (the simulator sends it again
+        while no command comes)."""
+        names = list(msg.names)
+        if len(names) != len(msg.ranges) or sorted(names) != sorted(SENSOR_NAMES):
+            self._reject('range group', f'names {names[:10]} with {len(msg.ranges)} ranges: need one Range for each of '
+                                        f'{", ".join(SENSOR_NAMES)}')
+            return
+        stamp = _ns(msg.header.stamp)
+        problem = next((f'{name}: {p}' for name, r in zip(names, msg.ranges)
+                        for p in [range_problem(r) or (None if _ns(r.header.stamp) == stamp else
+                                                       f'stamp {_ns(r.header.stamp) * 1e-9:.3f} s is not the '
+                                                       f"group's {stamp * 1e-9:.3f} s")] if p), None)
+        problem = problem or self._stamp_problem(stamp)
+        if problem:
+            self._reject('range group', problem)
+            return
+        self._take_readings(stamp, [(SENSOR_NAMES.index(name), r) for name, r in zip(names, msg.ranges)])
+
+    def _take_readings(self, stamp: int, readings) -> None:
+        """Valid (sensor index, Range) readings of the step `stamp` into the sample assembly."""
         was_waiting = self.assembler.waiting
-        self._take(self.assembler.reading(index, stamp, msg.range))
+        for index, msg in readings:
+            self.sensor_limits[index] = (float(msg.min_range), float(msg.max_range))
+            self._publish_model()
+            self._take(self.assembler.reading(index, stamp, msg.range))
         if self.assembler.waiting is not None and self.assembler.waiting is not was_waiting:
             self.waiting_since = self.steady.now().nanoseconds
 
@@ -451,7 +491,8 @@ class SensorManifold(Node):
                 # Re-entry error grows roughly with the time spent blind; scale by the practised excursions.
                 msg.virtual_uncertainty = float(m.virtual_.reentry_rms_after_ * self.tracker.virtual_steps
                                                 / max(self._mean_excursion_steps(), 1.0))
-            self._publish_jacobian(space, coords, s2, stamp)
+            if self.jacobian_pub.get_subscription_count():      # for monitoring only: not computed for no one
+                self._publish_jacobian(space, coords, s2, stamp)
         self.state_pub.publish(msg)
         self.last_state = msg
 

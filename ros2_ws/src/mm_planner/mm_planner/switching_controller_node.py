@@ -19,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from mm_common.node_utils import clock_went_back, declare, reject_non_finite, run_node
+from mm_common.node_utils import clock_went_back, declare, publish_if_subscribed, reject_non_finite, run_node
 from mm_common.qos import LOOP_QOS  # RELIABLE, deep history: see mm_common/qos.py
 from mm_msgs.msg import ControllerStatus, ManifoldState, ModelVerdict, SensorGoal
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
@@ -297,7 +297,7 @@ class SwitchingControllerNode(Node):
         msg.phase, msg.phase_name, msg.detail = decision.phase, decision.phase_name, decision.detail
         msg.error, msg.target, msg.step = float(decision.error), list(decision.target), decision.step
         msg.goal_stamp = decision.goal_stamp if decision.goal_stamp is not None else Time()
-        self.status_pub.publish(msg)
+        publish_if_subscribed(self.status_pub, msg)
         if decision.verdict is not None:
             v = decision.verdict
             verdict = ModelVerdict(model_samples=v.model_samples, accepted=v.accepted, reason=v.reason,

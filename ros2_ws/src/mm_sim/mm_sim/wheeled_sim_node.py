@@ -4,8 +4,9 @@
     ros2 run mm_sim wheeled_sim --ros-args -p lockstep:=false -p real_time_factor:=1.0      # real install
 
 Publishes, per simulation step and in this order, all with the stamp of that step:
-  /clock, the five `wheeled/range/<sensor>` (sensor_msgs/Range), `wheeled/bumper`, `wheeled/ground_truth/odom`
-  and, every `marker_period` steps, `wheeled/markers`.
+  /clock, the five `wheeled/range/<sensor>` (sensor_msgs/Range), the same five in one `wheeled/ranges`
+  (mm_msgs/RangeGroup, for a consumer that needs every reading of a step: one delivery instead of five),
+  `wheeled/bumper`, `wheeled/ground_truth/odom` and, every `marker_period` steps, `wheeled/markers`.
 Consumes `wheeled/wheel_velocity_controller/commands` (std_msgs/Float64MultiArray, [left, right] wheel rad/s).
 
 Lockstep (default): the readings of step k are out; one valid command advances exactly one step of `dt`. Whenever
@@ -27,9 +28,11 @@ from typing import List
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point
-from mm_common.node_utils import array_problem, check_parameters, declare, reject_input, run_node
+from mm_common.node_utils import (array_problem, check_parameters, declare, publish_if_subscribed, reject_input,
+                                  run_node)
 from mm_common.qos import LOOP_QOS  # RELIABLE, deep history: see mm_common/qos.py
 from mm_common.wheeled_sensors import SENSOR_NAMES
+from mm_msgs.msg import RangeGroup
 from mm_msgs.srv import ResetPose
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
@@ -136,6 +139,7 @@ class WheeledSim(Node):
 
         self.clock_pub = self.create_publisher(Clock, '/clock', LOOP_QOS)
         self.range_pubs = [self.create_publisher(Range, f'wheeled/range/{s.name}', LOOP_QOS) for s in sensors]
+        self.range_group_pub = self.create_publisher(RangeGroup, 'wheeled/ranges', LOOP_QOS)
         self.bumper_pub = self.create_publisher(Bool, 'wheeled/bumper', LOOP_QOS)
         self.odom_pub = self.create_publisher(Odometry, 'wheeled/ground_truth/odom', LOOP_QOS)
         self.marker_pub = self.create_publisher(MarkerArray, 'wheeled/markers', LOOP_QOS)
@@ -154,6 +158,8 @@ class WheeledSim(Node):
             m.min_range = float(s.min_range)
             m.max_range = float(s.max_range)
             self.range_msgs.append(m)
+        # the very Range messages above (their fields are written each step before either is published)
+        self.range_group = RangeGroup(names=[s.name for s in sensors], ranges=self.range_msgs)
         self.odom_msg = Odometry()
         self.odom_msg.header.frame_id = 'world'
         self.odom_msg.child_frame_id = 'base_link'
@@ -295,7 +301,9 @@ class WheeledSim(Node):
         for pub, msg, value in zip(self.range_pubs, self.range_msgs, readings):
             msg.header.stamp = stamp
             msg.range = float(value)
-            pub.publish(msg)
+            publish_if_subscribed(pub, msg)
+        self.range_group.header.stamp = stamp
+        publish_if_subscribed(self.range_group_pub, self.range_group)
         self.bool_msg.data = bool(self.bumped)
         self.bumper_pub.publish(self.bool_msg)
         x, y, theta = self.pose
@@ -304,8 +312,8 @@ class WheeledSim(Node):
         o.pose.pose.position.x, o.pose.pose.position.y = float(x), float(y)
         o.pose.pose.orientation.z, o.pose.pose.orientation.w = math.sin(theta / 2), math.cos(theta / 2)
         o.twist.twist.linear.x, o.twist.twist.angular.z = float(self.velocity[0]), float(self.velocity[1])
-        self.odom_pub.publish(o)
-        if markers or self.step_index % self.marker_period == 0:
+        publish_if_subscribed(self.odom_pub, o)
+        if (markers or self.step_index % self.marker_period == 0) and self.marker_pub.get_subscription_count():
             self.marker_pub.publish(self._markers(stamp, readings))
 
     def _markers(self, stamp: Time, readings) -> MarkerArray:
