@@ -24,7 +24,8 @@ from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
-from mm_msgs.msg import CollisionMap, Contact, EmbeddingState, ManifoldState, SensorGoal, SensorManifoldModel
+from mm_msgs.msg import (CollisionMap, Contact, EmbeddingState, ManifoldState, RangeGroup, SensorGoal,
+                        SensorManifoldModel)
 from mm_msgs.srv import PlaceObject, ResetPose, SetJointGoal, SetSensorGoal
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import Parameter as ParameterMsg, ParameterType, ParameterValue
@@ -509,6 +510,11 @@ def _ranges(k: int) -> list:
     return out
 
 
+def _range_group(k: int) -> RangeGroup:
+    return RangeGroup(header=_header(k), names=[name for name, _ in WHEELED_SENSORS],
+                      ranges=[msg for _, msg in _ranges(k)])
+
+
 def _manifold_state(k: int) -> ManifoldState:
     return ManifoldState(header=_header(k), active_space=ManifoldState.SPACE_NONE, coordinates=[],
                          sensor1=[0.5, 0.5, 0.5], sensor2=[math.inf, math.inf], sensor2_estimate=[],
@@ -544,6 +550,11 @@ SPECS = {
         'mm_manifold', 'sensor_manifold',
         frame=lambda k: _ranges(k) + [('wheeled/wheel_velocity_controller/commands',
                                        Float64MultiArray(data=[1.0, 1.0]))],
+        output=('wheeled/manifold/state', ManifoldState), processed=_stamped_output),
+    'sensor_manifold_grouped': NodeSpec(
+        'mm_manifold', 'sensor_manifold', parameters={'range_input': 'grouped'},
+        frame=lambda k: [('wheeled/ranges', _range_group(k)), ('wheeled/wheel_velocity_controller/commands',
+                                                              Float64MultiArray(data=[1.0, 1.0]))],
         output=('wheeled/manifold/state', ManifoldState), processed=_stamped_output),
     'switching_controller': NodeSpec(
         'mm_planner', 'switching_controller',

@@ -30,8 +30,10 @@ def _launch_graph(context, *args, **kwargs):
                  params_file(context, 'manifold_params', 'mm_manifold', 'sensor_manifold.yaml'),
                  params_file(context, 'controller_params', 'mm_planner', 'switching_controller.yaml')]
         # a dict of parameters reaches every node of the process: only lockstep, which only the simulator has, and
-        # range_input, which only the learner has
-        return [Node(package='mm_bringup', executable='wheeled_container', output='screen',
+        # range_input, which only the learner has. Recording, the container creates each node once the recorder
+        # (every topic) subscribes to what the nodes before it publish: the bag holds the loop from its first step.
+        wait = ['--wait-for-subscriber', 'recorder'] if launch_bool(context, 'record', default=False) else []
+        return [Node(package='mm_bringup', executable='wheeled_container', output='screen', arguments=wait,
                      parameters=[f for f in files if f] + [range_input] + ([lockstep_overrides(context)]
                                                                           if lockstep_overrides(context) else []))
                 ] + recorder_actions(context)

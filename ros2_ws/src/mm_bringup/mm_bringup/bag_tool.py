@@ -26,6 +26,16 @@ def _human_size(n: float) -> str:
     return f'{n:.1f} GiB'
 
 
+def topic_counts(directory: os.PathLike) -> Dict[str, int]:
+    """Messages per topic the bag's .mcap files hold (as format_info counts them)."""
+    directory = Path(directory)
+    counts: Dict[str, int] = {}
+    for path in bag_file_paths(directory, read_metadata(directory)):
+        for topic, n in summarize_file(path).counts.items():
+            counts[topic] = counts.get(topic, 0) + n
+    return counts
+
+
 def format_info(directory: os.PathLike, prog: str = 'mm bag') -> str:
     """A summary in the layout of `ros2 bag info`, with the message counts the .mcap files really hold (from each
     file's MCAP summary, or by reading the file through when it has none, which a note says). BagError for a

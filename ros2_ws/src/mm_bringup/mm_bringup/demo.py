@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from mm_bringup.arm_demo import run_arm_demo
-from mm_bringup.bag_tool import format_info
+from mm_bringup.bag_tool import format_info, topic_counts
 from mm_bringup.process_graph import ProcessGraph
 from mm_bringup.wall_experiment import (LAYOUTS, PAPER_GOAL_POSES, PAPER_START, layout_file, layout_robot,
                                         oracle_path_length, sensor2_goal_reading, simulator_params_file)
@@ -42,11 +42,11 @@ from mm_bringup.wall_graph import WallGraph
 from mm_common.wheeled_sensors import SENSOR2
 
 PAPER_TOLERANCE = 0.005
+# wheeled_sim publishes each of these exactly once per step (a re-sent step included)
+PER_STEP_TOPICS = ['/wheeled/ranges', '/wheeled/bumper', '/wheeled/ground_truth/odom'] + [
+    f'/wheeled/range/{n}' for n in ('front_left', 'front_center', 'front_right', 'side_front', 'side_rear')]
 # The recorder must hold these from the loop's first step (see WallGraph).
-LOOP_TOPICS = ['/clock', '/wheeled/ground_truth/odom', '/wheeled/wheel_velocity_controller/commands',
-               '/wheeled/controller/status'] + [f'/wheeled/range/{n}' for n in ('front_left', 'front_center',
-                                                                                 'front_right', 'side_front',
-                                                                                 'side_rear')]
+LOOP_TOPICS = ['/clock', '/wheeled/wheel_velocity_controller/commands', '/wheeled/controller/status'] + PER_STEP_TOPICS
 
 
 def log(text: str) -> None:
@@ -87,6 +87,13 @@ def explore_with_progress(wall: WallGraph, steps: int, every_s: float = 2.0) -> 
         return wall.samples >= steps
 
     wall.spin_until(explored, 1800.0, 'the exploration')
+
+
+def bag_completeness(bag: Path) -> dict:
+    """The simulator publishes its per-step topics once per step, all to the recorder: equal counts or a loss."""
+    counts = topic_counts(bag)
+    per_step = {t: counts.get(t, 0) for t in PER_STEP_TOPICS}
+    return {'per_step_topic_counts': per_step, 'complete': len(set(per_step.values())) == 1}
 
 
 def learn_with_progress(wall: WallGraph, every_s: float = 5.0) -> None:
@@ -227,6 +234,10 @@ def main(argv=None) -> int:
             if code != 0:
                 log(f'recorder exited with {code}:\n{graph.log_tail(recorder)}')
     print(format_info(bag), flush=True)
+    results['bag'] = bag_completeness(bag)
+    if not results['bag']['complete']:
+        log(f"WARNING: the bag lost messages of the wheeled loop: the simulator publishes each of these once per "
+            f"step, yet the bag holds {results['bag']['per_step_topic_counts']}")
     log(f'bag closed and summarised in {phases.done("bag")} s')
     results['phase_seconds'] = phases.seconds
     results['total_s'] = phases.total()

@@ -85,7 +85,8 @@ class Recorder(Node):
                                'the most data a kill -9 can lose', min_value=0.01, max_value=60.0, read_only=True)
         declare(self, 'drain_period', 0.3, 'Seconds spent taking already-delivered messages after a stop signal',
                 min_value=0.0, max_value=10.0)
-        self.queue_depth = declare(self, 'queue_depth', 1000, 'Subscription history depth per topic',
+        # as deep as the wheeled loop's own history (mm_common.qos): a recorder that lags keeps what the writer keeps
+        self.queue_depth = declare(self, 'queue_depth', 10000, 'Subscription history depth per topic',
                                    min_value=1, max_value=100000, read_only=True)
         if not output:
             output = time.strftime('rosbag2_%Y_%m_%d-%H_%M_%S')
