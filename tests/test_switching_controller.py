@@ -46,7 +46,7 @@ def test_explorer_reflex_backs_off(readings, bumped):
         explorer.last_command = np.array([3.0, 4.0])        # it got there driving forward
         u = explorer.command(readings, FRONT_RANGE, bumped)
         assert backing_off(u), (seed, u)
-        assert u[0] == pytest.approx(-explorer.drive_speed)
+        assert u[0] == pytest.approx(-explorer.drive_wheel_speed)
         # The back-off lasts a few steps even once the readings look fine again.
         for _ in range(3):
             assert backing_off(explorer.command(FAR, FRONT_RANGE))
@@ -58,7 +58,7 @@ def test_explorer_bumping_while_reversing_drives_forward():
     explorer.command(FAR, FRONT_RANGE)
     explorer.last_command = np.array([-5.0, -4.0])
     u = explorer.command([math.inf] * 5, FRONT_RANGE, bumped=True)
-    assert u[0] == pytest.approx(explorer.drive_speed) and u[1] == pytest.approx(explorer.drive_speed)
+    assert u[0] == pytest.approx(explorer.drive_wheel_speed) and u[1] == pytest.approx(explorer.drive_wheel_speed)
 
 
 def test_a_wedged_explorer_turns_free():
@@ -115,6 +115,21 @@ def test_explorer_reads_its_thresholds_in_the_front_sensors_range(scale):
         differ += not np.array_equal(u, in_metres.command(r * scale, front_range, bumped))
     assert same.excursions_started >= 2
     assert differ > 100         # the thresholds matter: the scaled readings against the unscaled range differ
+
+
+def test_explorer_wheel_speeds_are_fractions_of_the_robots_top_speed():
+    """No wheel speed is built in: an explorer given half the top wheel speed commands exactly half as fast on the
+    same readings (a power of two, so exactly), and the switching controller's manoeuvres scale the same way."""
+    robot, dt = layout_robot('paper')
+    readings = explore(robot, 1500, random_state=5, dt=dt).readings
+    front_range = robot.sensors[SENSOR1[1]].max_range
+    full, half = RandomExplorer(random_state=5), RandomExplorer(random_state=5, max_wheel_speed=3.0)
+    for r in readings:
+        np.testing.assert_array_equal(full.command(r, front_range, False) / 2, half.command(r, front_range, False))
+    np.testing.assert_array_equal(SwitchingController(DT).manoeuvres / 2,
+                                  SwitchingController(DT, max_wheel_speed=3.0).manoeuvres)
+    with pytest.raises(ValueError):
+        RandomExplorer(drive_speed=5.0)          # rad/s is no fraction
 
 
 def test_explorer_started_beyond_its_front_range_searches_for_the_wall():
@@ -175,7 +190,7 @@ def test_explorer_commands_stay_within_limits_and_leave_and_reenter_range():
     U = log.commands
     assert U.shape == (6000, 2) and np.all(np.isfinite(U))
     # Largest command: a drive at full speed plus the largest arc bend (40 % of the drive speed).
-    assert np.max(np.abs(U)) <= 1.4 * explorer.drive_speed + 1e-9
+    assert np.max(np.abs(U)) <= 1.4 * explorer.drive_wheel_speed + 1e-9
     assert np.min(log.poses[:, 1]) >= robot.body_radius                   # never through the wall
     # It explores: in and out of sensor-1 range many times, and into sensor 2's range.
     runs = find_excursions(log.readings, U, log.continuous)

@@ -37,7 +37,8 @@ UNDIRECTED = {'approach_probability': 0.0, 'excursion_share': 0.0}
 
 
 class RandomExplorer:
-    """Hyperparameters: wheel speeds for turning and driving [rad/s], hold range of a random command [steps],
+    """Hyperparameters: wheel speeds for turning and driving (fractions of max_wheel_speed, the robot's top wheel
+    speed [rad/s] that the controller is given: 2 and 5 rad/s on wheeled_sim's 6 rad/s), hold range of a random command [steps],
     excursion probability per decision when the front-centre reading is below `excursion_below`, an excursion's
     first turn [steps, range], longest run and largest second turn [steps], repeat_probability and repeat_jitter
     (relative change of each segment's length) of a successful excursion, approach_probability (a new excursion
@@ -55,7 +56,8 @@ class RandomExplorer:
 
     REFLEX_STEPS = 6        # steps of one reflex (back off, drive away from a contact, or turn when wedged)
 
-    def __init__(self, turn_speed: float = 2.0, drive_speed: float = 5.0, hold_steps=(4, 25),
+    def __init__(self, turn_speed: float = 1 / 3, drive_speed: float = 5 / 6, max_wheel_speed: float = 6.0,
+                 hold_steps=(4, 25),
                  excursion_probability: float = 0.3, excursion_below: float = 0.6 / 1.5, excursion_turn_steps=(7, 21),
                  excursion_run_steps: int = 40, excursion_turn2_steps: int = 5, repeat_probability: float = 0.0,
                  repeat_jitter: float = 0.2, approach_probability: float = 1.0, near: float = 0.08 / 1.5,
@@ -63,8 +65,13 @@ class RandomExplorer:
                  approach_bias: float = 0.55, max_retrace: int = 400, practice_probability: float = 0.15,
                  practice_segments: int = 4, excursion_share: float = 0.3, search_growth: float = 2.0,
                  random_state: Optional[int] = None):
+        if not (0 < turn_speed <= 1 and 0 < drive_speed <= 1 and max_wheel_speed > 0):
+            raise ValueError('turn_speed and drive_speed are fractions of a positive max_wheel_speed, in (0, 1]')
         self.turn_speed = turn_speed
         self.drive_speed = drive_speed
+        self.max_wheel_speed = max_wheel_speed
+        self.turn_wheel_speed = turn_speed * max_wheel_speed       # [rad/s]
+        self.drive_wheel_speed = drive_speed * max_wheel_speed     # [rad/s]
         self.hold_steps = hold_steps
         self.excursion_probability = excursion_probability
         self.excursion_below = excursion_below
@@ -115,7 +122,7 @@ class RandomExplorer:
         kind = self.rng.choice(['turn', 'drive', 'arc'])
         steps = self.rng.integers(*self.hold_steps)
         if kind == 'turn':
-            s = self.rng.choice([-1, 1]) * self.turn_speed
+            s = self.rng.choice([-1, 1]) * self.turn_wheel_speed
             cmd = [-s, s]
             steps = max(1, steps // 3)          # short turns: stay mostly inside sensor-1 range
         else:
@@ -129,8 +136,8 @@ class RandomExplorer:
                     direction = 1.0 if self.rng.random() < self.approach_bias else -1.0
                 else:
                     direction = self.rng.choice([-1.0, 1.0])
-            v = direction * self.drive_speed * self.rng.uniform(0.4, 1.0)
-            bend = self.rng.uniform(-0.4, 0.4) * self.drive_speed if kind == 'arc' else 0.0
+            v = direction * self.drive_wheel_speed * self.rng.uniform(0.4, 1.0)
+            bend = self.rng.uniform(-0.4, 0.4) * self.drive_wheel_speed if kind == 'arc' else 0.0
             cmd = [v - bend, v + bend]
         self.plan.extend(self._segment(cmd, steps))
 
@@ -146,11 +153,11 @@ class RandomExplorer:
         short of facing the wall.)"""
         if self.search_steps:
             # a heading of its own, not a small step from the last one: up to four of an excursion's longest turns
-            turn = self.rng.choice([-1.0, 1.0]) * self.turn_speed
+            turn = self.rng.choice([-1.0, 1.0]) * self.turn_wheel_speed
             self.plan.extend(self._segment([-turn, turn], self.rng.integers(0, 4 * self.excursion_turn_steps[1])))
         self.search_steps = round(self.search_growth * self.search_steps) or self.hold_steps[1]
-        self.plan.extend(self._segment([self.drive_speed] * 2, self.search_steps))
-        self.plan.extend(self._segment([-self.drive_speed] * 2, self.search_steps))
+        self.plan.extend(self._segment([self.drive_wheel_speed] * 2, self.search_steps))
+        self.plan.extend(self._segment([-self.drive_wheel_speed] * 2, self.search_steps))
         self.mode = 'search'
 
     def _start_approach(self, front: np.ndarray) -> None:
@@ -173,15 +180,15 @@ class RandomExplorer:
         run_steps = self.rng.uniform(0.0, self.excursion_run_steps)
         turn2_steps = self.rng.uniform(-self.excursion_turn2_steps, self.excursion_turn2_steps)
         turn2 = np.sign(turn2_steps)
-        self.chosen = [(np.array([-turn, turn]) * self.turn_speed, round(turn_steps)),
-                       (np.array([run, run]) * self.drive_speed, round(run_steps)),
-                       (np.array([-turn2, turn2]) * self.turn_speed, round(abs(turn2_steps)))]
+        self.chosen = [(np.array([-turn, turn]) * self.turn_wheel_speed, round(turn_steps)),
+                       (np.array([run, run]) * self.drive_wheel_speed, round(run_steps)),
+                       (np.array([-turn2, turn2]) * self.turn_wheel_speed, round(abs(turn2_steps)))]
         if self.approach_probability > 0 and self.rng.random() < self.approach_probability:
             self.approach_target = self.rng.uniform(self.near * self.front_range, front[1])
 
     def _approach(self, front: np.ndarray, too_close: bool) -> None:
         if front[1] > self.approach_target and not too_close:
-            self.plan.append(np.full(2, self.drive_speed * 0.5))
+            self.plan.append(np.full(2, self.drive_wheel_speed * 0.5))
         else:
             self._excursion(front)
 
@@ -212,10 +219,10 @@ class RandomExplorer:
         self.last_reflex_step, self.last_reflex_bumped = self.steps, bumped
         if wedged:
             self.wedge_turn = self.wedge_turn or float(self.rng.choice([-1.0, 1.0]))
-            return self._segment(np.array([-self.wedge_turn, self.wedge_turn]) * self.turn_speed, self.REFLEX_STEPS)
+            return self._segment(np.array([-self.wedge_turn, self.wedge_turn]) * self.turn_wheel_speed, self.REFLEX_STEPS)
         self.wedge_turn = 0.0
         away = 1.0 if bumped and np.sum(self.last_command) < 0 else -1.0
-        return self._segment([away * self.drive_speed] * 2, self.REFLEX_STEPS)
+        return self._segment([away * self.drive_wheel_speed] * 2, self.REFLEX_STEPS)
 
     def _practice(self) -> None:
         """Random short turns/drives, then the same in reverse order with negated commands (exact undo)."""
@@ -224,9 +231,9 @@ class RandomExplorer:
             steps = int(self.rng.integers(1, 8))
             sign = self.rng.choice([-1.0, 1.0])
             if self.rng.random() < 0.5:
-                cmd = np.array([-sign, sign]) * self.turn_speed * self.rng.uniform(0.3, 1.0)
+                cmd = np.array([-sign, sign]) * self.turn_wheel_speed * self.rng.uniform(0.3, 1.0)
             else:
-                cmd = np.array([sign, sign]) * self.drive_speed * self.rng.uniform(0.3, 1.0)
+                cmd = np.array([sign, sign]) * self.drive_wheel_speed * self.rng.uniform(0.3, 1.0)
             moves += [cmd] * steps
         sequence = moves + [-c for c in reversed(moves)]
         self.plan.extendleft(reversed(sequence))
@@ -289,10 +296,10 @@ class RandomExplorer:
             # Part of sensor 1 sees the wall. Driving ahead and coming nearer: drive on toward it until all of it
             # does or a reflex ends the ray (not during a turn, which must be completed to face the wall, nor along
             # the wall, where the sighting comes no nearer); the next rays start short again.
-            ahead = bool(np.all(self.last_command == self.drive_speed))
+            ahead = bool(np.all(self.last_command == self.drive_wheel_speed))
             if ahead and not too_close and sighted.min() < self.search_sighting:
                 self.plan.clear()
-                self.plan.extend(self._segment([self.drive_speed] * 2, 1))
+                self.plan.extend(self._segment([self.drive_wheel_speed] * 2, 1))
             self.search_steps = self.hold_steps[1]
         self.search_sighting = sighted.min() if sighted.size else math.inf
         if not self.plan:

@@ -51,7 +51,8 @@ class SwitchingController:
     path by 1-6 % over 1e-3 at equal or better success), tolerance [m] on each sensor-2 reading, settle_steps /
     max_settle_steps (fewest / most steps standing still to decide whether the reading is within tolerance: noisy
     readings need more of them), damping of the least-squares step, waypoint_tolerance [grid units], turn_speed /
-    drive_speed [rad/s] of the sensor-2 manoeuvres, stall_steps (steps without progress toward the target before
+    drive_speed of the sensor-2 manoeuvres (fractions of max_wheel_speed, the robot's own limit: 1.5 and 4 rad/s
+    on wheeled_sim's 6 rad/s), stall_steps (steps without progress toward the target before
     aiming at the next fallback), max_retries (times the route is restarted from the practised exit when every
     target was reached blind, or after the blind watchdog brought the robot back), blind_factor and
     blind_margin_steps (the watchdog: a blind stretch may last blind_factor x its predicted length + the margin;
@@ -61,7 +62,7 @@ class SwitchingController:
     def __init__(self, dt: float, max_wheel_speed: float = 6.0, horizon: int = 12,
                  speed_levels=(1.0, 0.4, 0.12, 0.0), travel_weight: float = 1e-3, tolerance: float = 0.01,
                  settle_steps: int = 4, damping: float = 1e-2, waypoint_tolerance: float = 0.3,
-                 turn_speed: float = 1.5, drive_speed: float = 4.0, stall_steps: int = 20, max_retries: int = 3,
+                 turn_speed: float = 0.25, drive_speed: float = 2 / 3, stall_steps: int = 20, max_retries: int = 3,
                  max_settle_steps: int = 30, manoeuvre_travel_weight: float = 1e-2, blind_factor: float = 1.5,
                  blind_margin_steps: int = 20, blind_prediction_cap: int = 100):
         if dt <= 0 or max_wheel_speed <= 0 or tolerance <= 0 or horizon < 1:
@@ -70,6 +71,8 @@ class SwitchingController:
             raise ValueError('travel weights must be >= 0')
         if not 2 <= settle_steps <= max_settle_steps:
             raise ValueError('need 2 <= settle_steps <= max_settle_steps')
+        if not (0 < turn_speed <= 1 and 0 < drive_speed <= 1):
+            raise ValueError('turn_speed and drive_speed are fractions of max_wheel_speed in (0, 1]')
         if blind_factor < 1 or blind_margin_steps < 0 or blind_prediction_cap < 1:
             raise ValueError('need blind_factor >= 1, blind_margin_steps >= 0 and blind_prediction_cap >= 1')
         self.dt = dt
@@ -90,8 +93,8 @@ class SwitchingController:
         self._plan: Optional[np.ndarray] = None
         levels = sorted({s * max_wheel_speed * sign for s in speed_levels for sign in (-1, 1)})
         self.candidates = np.array(list(product(levels, levels)), dtype=float)
-        self.manoeuvres, self.manoeuvre_travel = self._manoeuvres(min(turn_speed, max_wheel_speed),
-                                                                  min(drive_speed, max_wheel_speed))
+        self.manoeuvres, self.manoeuvre_travel = self._manoeuvres(turn_speed * max_wheel_speed,
+                                                                  drive_speed * max_wheel_speed)
         self.goal_sensor2: Optional[np.ndarray] = None
         self.goal_coordinates: Optional[np.ndarray] = None
         self.waypoint: Optional[np.ndarray] = None

@@ -146,7 +146,8 @@ class WallAgent:
         unknown = sorted(set(self.explorer_params) - set(inspect.signature(RandomExplorer).parameters))
         if unknown:
             raise ValueError(f'RandomExplorer has no hyperparameter {", ".join(unknown)}')
-        self.explorer = RandomExplorer(**{**self.explorer_params, 'random_state': random_state})
+        self.explorer = RandomExplorer(**{**self.explorer_params, 'max_wheel_speed': max_wheel_speed,
+                                          'random_state': random_state})
         self.controller: Optional[SwitchingController] = None
         self.model: Optional[WallModel] = None
         self.goal: Optional[Goal] = None
