@@ -121,10 +121,51 @@ def raw_vector_baselines(X_train: np.ndarray, c_train: np.ndarray, X_test: np.nd
     return out
 
 
+def _source_counts(sources) -> Dict[str, int]:
+    from mm_manifold.arm_learning import OBJECT_SOURCES
+    return {s: int(np.sum(np.asarray(sources) == s)) for s in OBJECT_SOURCES}
+
+
+def embedding_rows(learner, X, c, X_test, c_test, d_test, n_neighbors_grid=(10, 20, 40),
+                   keys: Optional[tuple] = None) -> Dict[str, object]:
+    """Tables 1-2 rows of one keypoint vector: for LLE and PCA, n_neighbors, region model and radius by 5-fold
+    cross-validation on the training vectors X, scored on X_test (embedded out of sample). `keys` (default all):
+    which of '<method>_best' / '<method>_<region model>' to fit and score."""
+    from scipy.stats import spearmanr
+    result: Dict[str, object] = {}
+    for method in ('lle', 'pca'):
+        wanted = [(f'{method}_best', None)] + [(f'{method}_{m}', m) for m in REGION_MODELS]
+        wanted = [(k, m) for k, m in wanted if keys is None or k in keys]
+        if not wanted:
+            continue
+        t0 = time.perf_counter()
+        sel = select_contact_model(X, c, method, learner.n_components, n_neighbors_grid,
+                                   embedding_params=learner._embedding_params(method),
+                                   random_state=learner.random_state)
+        select_s = time.perf_counter() - t0
+        for key, m in wanted:
+            cand = sel['best'] if m is None else best_of(sel, m)
+            emb, region = fit_contact_model(X, c, cand, method, learner.n_components,
+                                            learner._embedding_params(method), learner.random_state)
+            Y_test = emb.transform(X_test)
+            conf = confusion(region.predict(Y_test), c_test)
+            rho = spearmanr(region.closeness(Y_test), d_test)[0]
+            result[key] = dict(conf, region=cand['model'], n_neighbors=cand['n_neighbors'], C=cand['C'],
+                               radius=float(region.radius_) if hasattr(region, 'radius_') else None,
+                               threshold=cand['threshold'], cv_tpr=cand['cv_tpr'], cv_fpr=cand['cv_fpr'],
+                               select_s=select_s, closeness_distance_spearman=float(rho))
+            if key == 'lle_sphere':
+                result['_lle_sphere_model'] = (emb, region, Y_test)
+        result[f'{method}_cv_candidates'] = sel['candidates']
+    return result
+
+
 def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_seed: int = 0,
                                   train_seed: int = 1, test_seed: int = 2, replace_every: int = 10,
                                   learner_params=None, n_neighbors_grid=(10, 20, 40),
-                                  extractor=None, touch: str = 'hand') -> Dict[str, object]:
+                                  extractor=None, touch: str = 'hand',
+                                  compare_params: Optional[Dict[str, Dict]] = None,
+                                  geometry_from: Optional[str] = None) -> Dict[str, object]:
     """Learn from moving-object exploration frames (placements drawn with `train_seed`), score collision
     prediction on frames of other placements (`test_seed`): never seen in training. Same frames for every method.
 
@@ -138,7 +179,11 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
     chosen hyperparameters and the Spearman of the region's closeness with the true distance. Also returns the
     learner and the test data (for the figures), class balance and timings. `touch`: the label the robot learns
     from and is scored against, 'hand' (the hand's touch sensor, the paper's label) or 'any_part' (a touch sensor
-    covering the whole arm)."""
+    covering the whole arm). `compare_params` {name: learner params}: a learner per entry fitted on the same
+    training frames and scored on the same test frames, keys '<name>_lle_sphere', '<name>_lle_best' and
+    '<name>_pca_sphere' (another keypoint vector beside the learner's own). `geometry_from`: the compare_params entry
+    whose learner scores the 'geometry' row (its embedding fallback and map_threshold belong to that vector; default
+    the learner's own)."""
     from scipy.stats import spearmanr
     from mm_manifold.arm_learning import ArmStateLearner
     from mm_manifold.keypoints import KeypointExtractor
@@ -146,6 +191,8 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
 
     if touch not in ('hand', 'any_part'):
         raise ValueError("touch must be 'hand' or 'any_part'")
+    if geometry_from is not None and geometry_from not in (compare_params or {}):
+        raise ValueError(f'geometry_from {geometry_from!r} is not a compare_params entry')
     label = 'contact' if touch == 'hand' else 'any_contact'
     model = ArmModel(random_state=scene_seed)
     extractor = extractor or KeypointExtractor()
@@ -160,7 +207,7 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
     fit_s = time.perf_counter() - t0
     X, c = learner.train_vectors_, train[label]
     t0 = time.perf_counter()
-    X_test = learner.frame_vectors(kps_test)
+    X_test = learner.frame_vectors(kps_test, test['joints'])
     vector_ms = 1e3 * (time.perf_counter() - t0) / n_test
     c_test, d_test = test[label], test['distance']
     gap = np.min(np.linalg.norm(test['object'][:, None] - np.unique(train['object'], axis=0)[None], axis=2), 1)
@@ -176,37 +223,32 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
                                                                       external=int(roles[2]), unclear=int(roles[3])),
         representation=learner.representation, lle_method=learner.lle_method, n_components=learner.n_components,
         vector_width=int(X.shape[1]), frames_ms=frames_ms, learner_fit_s=fit_s, vectorize_ms=vector_ms)
-    for method in ('lle', 'pca'):
-        t0 = time.perf_counter()
-        sel = select_contact_model(X, c, method, learner.n_components, n_neighbors_grid,
-                                   embedding_params=learner._embedding_params(method),
-                                   random_state=learner.random_state)
-        select_s = time.perf_counter() - t0
-        for key, cand in [(f'{method}_best', sel['best'])] + [(f'{method}_{m}', best_of(sel, m))
-                                                               for m in REGION_MODELS]:
-            emb, region = fit_contact_model(X, c, cand, method, learner.n_components,
-                                            learner._embedding_params(method), learner.random_state)
-            Y_test = emb.transform(X_test)
-            conf = confusion(region.predict(Y_test), c_test)
-            rho = spearmanr(region.closeness(Y_test), d_test)[0]
-            result[key] = dict(conf, region=cand['model'], n_neighbors=cand['n_neighbors'], C=cand['C'],
-                               radius=float(region.radius_) if hasattr(region, 'radius_') else None,
-                               threshold=cand['threshold'], cv_tpr=cand['cv_tpr'], cv_fpr=cand['cv_fpr'],
-                               select_s=select_s, closeness_distance_spearman=float(rho))
-            if key == 'lle_sphere':
-                result['_lle_sphere_model'] = (emb, region, Y_test)
-        result[f'{method}_cv_candidates'] = sel['candidates']
+    if learner.representation == 'contact_point':
+        result['object_sources_test'] = _source_counts(learner.object_track(kps_test)[1])
+    result.update(embedding_rows(learner, X, c, X_test, c_test, d_test, n_neighbors_grid))
+    geometry_learner = learner
+    for name, params in (compare_params or {}).items():
+        other = ArmStateLearner(model.joint_limits, **params).fit(kps_train, train['joints'], train[label])
+        rows = embedding_rows(other, other.train_vectors_, c, other.frame_vectors(kps_test, test['joints']), c_test,
+                              d_test, n_neighbors_grid, keys=('lle_sphere', 'lle_best', 'pca_sphere'))
+        result.update({f'{name}_{k}': v for k, v in rows.items() if not k.startswith('_') and 'cv_candidates' not in k})
+        result[f'{name}_params'] = dict(params, vector_width=int(other.train_vectors_.shape[1]))
+        if name == geometry_from:
+            geometry_learner = other
+        if other.representation == 'contact_point':
+            result[f'{name}_object_sources_test'] = _source_counts(other.object_track(kps_test)[1])
     result.update(raw_vector_baselines(X, c, X_test, c_test, random_state=learner.random_state))
     # no embedding, the image geometry: the learned object placed where the frame alone shows it, against the
     # robot's segments at the frame's joints (the keypoint-distance map route); frames that do not place the
     # object fall back to the LLE region
     t0 = time.perf_counter()
-    preds = [learner.predict_frames(k, q[None], method='keypoint_distance') for k, q in zip(kps_test, test['joints'])]
+    preds = [geometry_learner.predict_frames(k, q[None], method='keypoint_distance') for k, q in zip(kps_test, test['joints'])]
     geometry_ms = 1e3 * (time.perf_counter() - t0) / n_test
     closeness = np.array([p['closeness'][0] for p in preds])
     result['geometry'] = dict(confusion(np.array([p['collision'][0] for p in preds]), c_test),
-                              region='per-segment contact distances', margin_quantile=learner.margin_quantile,
-                              objects_learned=learner.n_objects_,
+                              region='per-segment contact distances',
+                              margin_quantile=geometry_learner.margin_quantile,
+                              objects_learned=geometry_learner.n_objects_, vector=geometry_from or 'own',
                               fallback_frames=int(sum(p['method'] != 'keypoint_distance' for p in preds)),
                               closeness_distance_spearman=float(spearmanr(closeness, d_test)[0]),
                               predict_ms=geometry_ms)

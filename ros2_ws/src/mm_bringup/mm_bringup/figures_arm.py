@@ -24,9 +24,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.stats import spearmanr  # noqa: E402
 
-from mm_bringup.bench.arm_task import (LEARNER_PARAMS, PLACEMENT_SEED, SCENE_SEED, TEST_SEED,  # noqa: E402
-                                       TRAIN_SEED, choose_task, execute_plan, truth_move_maps)
+from mm_bringup.bench.arm_task import (COMPARE_PARAMS, LEARNER_PARAMS, PLACEMENT_SEED, PLAN_PARAMS,  # noqa: E402
+                                       SCENE_SEED, TEST_SEED, TRAIN_SEED, choose_task, execute_plan,
+                                       truth_move_maps)
 from mm_bringup.arm_evaluation import evaluate_collision_prediction  # noqa: E402
+from mm_manifold.arm_learning import ArmStateLearner  # noqa: E402
 from mm_manifold.embedding import ImageEmbedding, format_confusion, synthetic_keypoint_frames  # noqa: E402
 from mm_manifold.keypoints import KeypointExtractor, NearestImputer  # noqa: E402
 from mm_planner.value_iteration import DPPlanner, JointGrid  # noqa: E402
@@ -76,20 +78,27 @@ def fig12(out: Path, ev) -> None:
     d_test, c_test = test['distance'], test['contact']
     close_test = sphere.closeness(Y_test_all)
     rho = spearmanr(close_test, d_test)[0]
+    flat = Y.shape[1] < 3                       # a 2-D embedding (the contact-point vector): plain axes, a circle
     fig = plt.figure(figsize=(17, 5.2))
-    ax = fig.add_subplot(1, 3, 1, projection='3d')
+    ax = fig.add_subplot(1, 3, 1, **({} if flat else dict(projection='3d')))
     ax.scatter(*Y[~c].T, s=3, c='tab:blue', alpha=0.25, label='no contact (training)')
     ax.scatter(*Y[c].T, s=8, c='tab:red', marker='x', alpha=0.6, label='contact (training)')
-    u, v = np.mgrid[0:2 * np.pi:24j, 0:np.pi:12j]
-    unit = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)], -1) * sphere.radius_
-    pts = unit + sphere.centre_[:3]              # the sphere's projection onto these axes
-    ax.plot_wireframe(pts[..., 0], pts[..., 1], pts[..., 2], color='k', linewidth=0.3, alpha=0.5)
+    if flat:
+        t = np.linspace(0, 2 * np.pi, 100)
+        ax.plot(*(sphere.centre_[:2, None] + sphere.radius_ * np.stack([np.cos(t), np.sin(t)])), 'k-',
+                linewidth=0.8)
+        ax.set_aspect('equal')
+    else:
+        u, v = np.mgrid[0:2 * np.pi:24j, 0:np.pi:12j]
+        unit = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)], -1) * sphere.radius_
+        pts = unit + sphere.centre_[:3]              # the sphere's projection onto these axes
+        ax.plot_wireframe(pts[..., 0], pts[..., 1], pts[..., 2], color='k', linewidth=0.3, alpha=0.5)
     r = ev['lle_sphere']
-    ax.set_title(f'LLE ({emb.embedding_.shape[1]}-D, axes 1-3) of {len(Y)} exploration frames '
+    ax.set_title(f'LLE ({emb.embedding_.shape[1]}-D{"" if flat else ", axes 1-3"}) of {len(Y)} exploration frames '
                  f'(object re-placed every {ev["replace_every"]})\n'
                  f'paper\'s sphere: held-out TPR {r["tpr"]:.2f} / FPR {r["fpr"]:.2f}', fontsize=9)
     ax.legend(fontsize=7, loc='upper left')
-    ax = fig.add_subplot(1, 3, 2, projection='3d')
+    ax = fig.add_subplot(1, 3, 2, **({} if flat else dict(projection='3d')))
     sc = ax.scatter(*Y_test.T, c=d_test, cmap='viridis_r', s=8)
     ax.scatter(*Y_test[c_test].T, s=30, facecolors='none', edgecolors='r', linewidths=0.6, label='contact')
     fig.colorbar(sc, ax=ax, shrink=0.6, label='true hand-object distance [px]')
@@ -111,7 +120,11 @@ def fig12(out: Path, ev) -> None:
 
 
 def fig13(out: Path, ev) -> None:
-    learner, model = ev['_learner'], ev['_model']
+    """The benchmark's planning before moving (its kept PLAN_PARAMS learner, whole-arm touch) on one held-out
+    placement."""
+    model = ev['_model']
+    learner = ArmStateLearner(model.joint_limits, **PLAN_PARAMS).fit(ev['_kps_train'], ev['_train']['joints'],
+                                                                     ev['_train']['any_contact'])
     grid = JointGrid(*learner.joint_limits, *learner.grid_shape)
     rng = np.random.default_rng(PLACEMENT_SEED)
     task = None
@@ -159,14 +172,21 @@ def tables(out: Path, bench_json: Path) -> None:
             ('raw_sphere', 'No embedding: contact sphere in the keypoint vector space'),
             ('raw_knn', 'No embedding: k-nearest-neighbour vote on the keypoint vector'),
             ('geometry', "No embedding: the learned object placed where the frame shows it, against the robot's "
-                         'segments with per-segment contact distances'))
+                         "segments with per-segment contact distances (the planning vector's learner)"))
     b = json.loads(bench_json.read_text())
+    for name in COMPARE_PARAMS:
+        p = b.get(f'{name}_params') or {}
+        vector = (f"{name} vector ({p.get('representation')}, {p.get('vector_width')} values, "
+                  f"{p.get('n_components')}-D, LLE {p.get('lle_method')})")
+        keys += ((f'{name}_lle_sphere', f"For comparison, {vector}: LLE, contact sphere"),
+                 (f'{name}_lle_best', f'For comparison, {vector}: LLE, region model chosen by cross-validation'),
+                 (f'{name}_pca_sphere', f'For comparison, {vector}: PCA, contact sphere'))
     text = ['# Arm collision prediction (paper Tables 1-2)', '',
             f"Source: {bench_json}. Test frames: {b['eval_n_test']} from {b['eval_test_placements']} object "
             f"placements never seen in training ({b['eval_test_contact']} with contact, "
             f"{b['eval_n_test'] - b['eval_test_contact']} without); training: {b['eval_n_train']} exploration "
             f"frames from {b['eval_train_placements']} placements ({b['eval_train_contact']} with contact). "
-            f"Vector: {b['eval_representation']} keypoint positions, {b['eval_vector_width']} values; "
+            f"Vector: {b['eval_representation']} (from the keypoint positions), {b['eval_vector_width']} values; "
             f"{b['eval_n_components']}-D embeddings, LLE method {b['learner_params']['lle_method']}.", '',
             'n_neighbors, the radius / threshold and (best rows) the region model were chosen by 5-fold '
             'cross-validation on the training frames only; the same test frames score every row.', '']

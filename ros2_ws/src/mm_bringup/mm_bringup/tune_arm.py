@@ -2,15 +2,17 @@
 
     ./mm python -m mm_bringup.tune_arm [--output results/tune_arm.json] [--stages embedding map]
 
-Stage 'embedding': for every combination of the grid (keypoint vector representation, LLE method, embedding
-dimensions) it runs mm_bringup.arm_evaluation.evaluate_collision_prediction on scene SCENE_SEED with training
+Stage 'embedding': for every combination of each sub-grid of GRID (keypoint vector representation, LLE method,
+embedding dimensions; the contact-point vector is 2-D, so its sub-grid has 2 dimensions and the object-label
+variant instead) it runs mm_bringup.arm_evaluation.evaluate_collision_prediction on scene SCENE_SEED with training
 placements from TRAIN_SEED and held-out placements from TEST_SEED (the benchmark uses scene 0 and generators 1, 2,
 3) and scores the held-out TPR - FPR of the paper's LLE sphere and of the best cross-validated LLE region. The
 winner (largest sum of the two) goes into bench.arm_task.LEARNER_PARAMS by hand.
-Stage 'map': with bench.arm_task.LEARNER_PARAMS, learners fitted on the same training frames with the hand's touch
-and with a whole-arm touch plan before moving on MAP_PLACEMENTS placements of generator MAP_SEED, for every
-candidate map_threshold; the threshold with the best mean DP success (paper's rewards; ties: map accuracy) becomes
-ArmStateLearner's default map_threshold by hand. The JSON records every row and the seeds.
+Stage 'map': for each vector in PLAN_CANDIDATES (bench.arm_task's PLAN_PARAMS and LEARNER_PARAMS), learners fitted
+on the same training frames with the hand's touch and with a whole-arm touch plan before moving on MAP_PLACEMENTS
+placements of generator MAP_SEED, for every candidate map_threshold; the vector with the best whole-arm DP success
+becomes bench.arm_task.PLAN_PARAMS and, for it, the threshold with the best mean DP success (paper's rewards; ties:
+map accuracy) ArmStateLearner's default map_threshold, both by hand. The JSON records every row and the seeds.
 """
 from __future__ import annotations
 
@@ -24,7 +26,9 @@ from mm_bringup.arm_evaluation import evaluate_collision_prediction
 from mm_manifold.keypoints import KeypointExtractor
 
 SCENE_SEED, TRAIN_SEED, TEST_SEED, MAP_SEED = 10, 11, 12, 13
-GRID = dict(representation=('absolute', 'relative'), lle_method=('standard', 'modified'), n_components=(3, 4))
+GRID = (dict(representation=('absolute', 'relative'), lle_method=('standard', 'modified'), n_components=(3, 4)),
+        dict(representation=('contact_point',), lle_method=('standard', 'modified'), n_components=(2,),
+             object_labels=(1, 2)))
 MAP_THRESHOLDS = (0.0, 0.25, 0.5, 0.75, 1.0)
 MAP_PLACEMENTS = 20
 
@@ -32,26 +36,33 @@ MAP_PLACEMENTS = 20
 def tune_map(n_train: int, extractor) -> dict:
     """Stage 'map' (module docstring)."""
     import numpy as np
-    from mm_bringup.bench.arm_task import LEARNER_PARAMS, plan_before_moving
+    from mm_bringup.bench.arm_task import LEARNER_PARAMS, PLAN_PARAMS, plan_before_moving
     from mm_bringup.arm_evaluation import moving_object_exploration, render_keypoints
     from mm_manifold.arm_learning import ArmStateLearner
     from mm_sim.arm_model import ArmModel
     model = ArmModel(random_state=SCENE_SEED)
     train = moving_object_exploration(model, n_train, rng=np.random.default_rng(TRAIN_SEED))
     kps = render_keypoints(model, train['joints'], train['object'], extractor)
+    candidates = [PLAN_PARAMS] + ([LEARNER_PARAMS] if LEARNER_PARAMS != PLAN_PARAMS else [])
     rows = []
-    for touch, label in (('hand', 'contact'), ('any_part', 'any_contact')):
-        learner = ArmStateLearner(model.joint_limits, **LEARNER_PARAMS).fit(kps, train['joints'], train[label])
-        for threshold in MAP_THRESHOLDS:
-            learner.map_threshold = threshold
-            r = plan_before_moving(learner, model, MAP_PLACEMENTS, MAP_SEED, extractor, log=lambda *_: None)
-            rows.append(dict(touch=touch, map_threshold=threshold, success=r['plan_paper_success_rate'],
-                             map_accuracy=r['plan_map_any']['accuracy']))
-            print(json.dumps(rows[-1]), flush=True)
-    score = {t: (np.mean([r['success'] for r in rows if r['map_threshold'] == t]),
-                 np.mean([r['map_accuracy'] for r in rows if r['map_threshold'] == t])) for t in MAP_THRESHOLDS}
-    return dict(map_seed=MAP_SEED, map_placements=MAP_PLACEMENTS, learner_params=LEARNER_PARAMS, map_rows=rows,
-                best_map_threshold=max(MAP_THRESHOLDS, key=lambda t: score[t]))
+    for params in candidates:
+        for touch, label in (('hand', 'contact'), ('any_part', 'any_contact')):
+            learner = ArmStateLearner(model.joint_limits, **params).fit(kps, train['joints'], train[label])
+            for threshold in MAP_THRESHOLDS:
+                learner.map_threshold = threshold
+                r = plan_before_moving(learner, model, MAP_PLACEMENTS, MAP_SEED, extractor, log=lambda *_: None)
+                rows.append(dict(params=params, touch=touch, map_threshold=threshold,
+                                 success=r['plan_paper_success_rate'], map_accuracy=r['plan_map_any']['accuracy']))
+                print(json.dumps(rows[-1]), flush=True)
+
+    def whole_arm_success(params):
+        return max(r['success'] for r in rows if r['params'] == params and r['touch'] == 'any_part')
+    best_params = max(candidates, key=whole_arm_success)
+    mine = [r for r in rows if r['params'] == best_params]
+    score = {t: (np.mean([r['success'] for r in mine if r['map_threshold'] == t]),
+                 np.mean([r['map_accuracy'] for r in mine if r['map_threshold'] == t])) for t in MAP_THRESHOLDS}
+    return dict(map_seed=MAP_SEED, map_placements=MAP_PLACEMENTS, plan_candidates=candidates, map_rows=rows,
+                best_plan_params=best_params, best_map_threshold=max(MAP_THRESHOLDS, key=lambda t: score[t]))
 
 
 def main(argv=None) -> int:
@@ -69,11 +80,12 @@ def main(argv=None) -> int:
     if 'map' in args.stages and 'embedding' not in args.stages:
         out.update(tune_map(args.n_train, extractor))
         _write(path, out)
-        print(f"[tune_arm] best map_threshold {out['best_map_threshold']}; wrote {path}")
+        print(f"[tune_arm] planning with {out['best_plan_params']}, best map_threshold {out['best_map_threshold']}; "
+              f"wrote {path}")
         return 0
     rows = []
-    for values in itertools.product(*GRID.values()):
-        params = dict(zip(GRID, values))
+    combos = [dict(zip(sub, values)) for sub in GRID for values in itertools.product(*sub.values())]
+    for params in combos:
         t0 = time.perf_counter()
         ev = evaluate_collision_prediction(args.n_train, args.n_test, SCENE_SEED, TRAIN_SEED, TEST_SEED,
                                            learner_params=params, extractor=extractor, n_neighbors_grid=(10, 20, 40))
@@ -84,11 +96,11 @@ def main(argv=None) -> int:
         rows.append(row)
         print(json.dumps(row), flush=True)
     best = max(rows, key=lambda r: r['score'])
-    out.update(grid={k: list(v) for k, v in GRID.items()}, best=best['params'], rows=rows)
+    out.update(grid=[{k: list(v) for k, v in sub.items()} for sub in GRID], best=best['params'], rows=rows)
     print(f'[tune_arm] best {best["params"]} (score {best["score"]:.3f})')
     if 'map' in args.stages:
         out.update(tune_map(args.n_train, extractor))
-        print(f"[tune_arm] best map_threshold {out['best_map_threshold']}")
+        print(f"[tune_arm] planning with {out['best_plan_params']}, best map_threshold {out['best_map_threshold']}")
     _write(path, out)
     print(f'[tune_arm] wrote {path}')
     return 0

@@ -1,6 +1,7 @@
 """The arm benchmark's helpers: ground-truth move maps, planning before moving on held-out placements, the synthetic
 check with a moving object (small sizes; the benchmark runs the full ones)."""
 import numpy as np
+import pytest
 
 from mm_bringup.bench.arm_task import plan_before_moving, synthetic_check, truth_move_maps
 from mm_bringup.arm_evaluation import moving_object_exploration, render_keypoints
@@ -48,3 +49,17 @@ def test_synthetic_check_reports_both_embeddings():
     for method in ('lle', 'pca'):
         assert 0.0 <= out[f'synthetic_{method}_abs_spearman'] <= 1.0
         assert out[f'synthetic_{method}_abs_spearman'] == max(out[f'synthetic_{method}_abs_spearman_per_axis'])
+
+
+def test_geometry_row_is_scored_by_the_named_learner():
+    """The geometry row's fallback region belongs to one vector; evaluate runs it with the learner asked for."""
+    from mm_bringup.arm_evaluation import evaluate_collision_prediction
+    contact_point = dict(representation='contact_point', n_components=2, object_labels=1, n_folds=3)
+    relative = dict(representation='relative', n_components=4, n_folds=3)
+    with pytest.raises(ValueError, match='geometry_from'):
+        evaluate_collision_prediction(200, 60, 5, 51, 52, learner_params=contact_point, geometry_from='relative')
+    out = evaluate_collision_prediction(200, 60, 5, 51, 52, learner_params=contact_point, n_neighbors_grid=(10,),
+                                        compare_params=dict(relative=relative), geometry_from='relative')
+    row = out['geometry']
+    assert row['vector'] == 'relative' and row['tp'] + row['fn'] + row['fp'] + row['tn'] == 60
+    assert out['representation'] == 'contact_point' and out['relative_params']['representation'] == 'relative'

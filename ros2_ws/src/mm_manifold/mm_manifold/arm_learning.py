@@ -30,7 +30,14 @@ label that moves but is not predicted by the joints (R^2 <= `external_r2`) belon
 `representation='relative'` (default) embeds the spatial relation the paper asks for: the positions of the robot's
 own labels relative to where the external labels are (their median displacement from their mean training position);
 'absolute' embeds the raw labelled positions (the paper's vector). External labels hidden in a frame are taken from
-the `recent_frames` frames before it.
+the `recent_frames` frames before it. 'contact_point' embeds one 2-D offset, d = p - o - e: p = A + c1 (B - A) + c2
+perp(B - A) is a virtual contact point rigid with the last link (A, B: the two farthest-apart precisely placed robot
+labels that move with joint 1 and rigidly with each other, put where the joint regression puts them at the frame's
+joint readings, so never hidden), o the learned object's centre (template shift; a frame that does not place it takes
+the newest of the `recent_frames` frames before, else the last estimate, else the training mean; `object_labels` 1
+also accepts a single object label) and e an image offset. (c1, c2, e) come from least squares of ||p - o - e|| over
+the touch frames, then a class-balanced logistic fit of (r - ||d||) / s: contact depends on the hand relative to the
+object only, and the other vectors carry every arm label, which spreads the contact frames into a slab across poses.
 
 `predict_collision_map(frame, recent)` plans before moving, for an object placement never seen (the paper's
 "prediction of robot's hand in the image space"): for a fine lattice of joint vectors over the grid it synthesises
@@ -84,8 +91,9 @@ from mm_manifold.embedding import (REGION_MODELS, ContactQuadric, ContactSphere,
                                    quadratic_features, select_contact_model)
 from mm_manifold.keypoints import FrameKeypoints, KeypointVectorizer, MeanImputer, NearestImputer
 
-FORMAT_VERSION = 6
-REPRESENTATIONS = ('relative', 'absolute')
+FORMAT_VERSION = 7
+REPRESENTATIONS = ('relative', 'absolute', 'contact_point')
+OBJECT_SOURCES = ('frame', 'recent', 'stale', 'mean')   # where the contact-point vector's object estimate came from
 MAP_METHODS = ('keypoint_distance', 'embedding')
 UNPLACED_POLICIES = ('embedding', 'block')      # keypoint-distance map of a frame that does not place the object
 STATIC, SELF, EXTERNAL, UNCLEAR = 0, 1, 2, 3     # label roles
@@ -305,7 +313,9 @@ class ArmStateLearner:
     (LLE), lle_method, region ('auto', or one of 'sphere' (the paper's), 'ellipsoid', 'quadric'), grid_shape (rows,
     cols), cell_min_frames,
     cell_collision_fraction, map_margin, vectorizer_params (dict for KeypointVectorizer), random_state, n_folds
-    (cross-validation of the region), representation ('relative' or 'absolute'), self_r2 and external_r2 (label
+    (cross-validation of the region), representation ('relative', 'absolute' or 'contact_point'; the last needs the
+    joint readings in transform / frame_vectors and n_components <= 2), object_labels (contact_point: 2 = a frame
+    places the object when two of its labels agree, 1 = a single label will do), self_r2 and external_r2 (label
     roles), min_motion [px] (below: a static label), recent_frames (how many preceding frames may stand in for a
     hidden external label), map_resolution (lattice points per cell side in predict_collision_map; even),
     map_threshold (closeness at or above which predict_collision_map counts a lattice point as contact; chosen by
@@ -316,7 +326,10 @@ class ArmStateLearner:
     pca_region_ (ContactSphere or ContactQuadric), selection_ and pca_selection_ (the cross-validated choice: model, C,
     threshold, cv_tpr, cv_fpr), imputer_ (for the embedded vectors), train_vectors_ (imputed), train_joints_,
     train_contact_, train_stamps_ (int ns, or -1), train_predicted_ and train_closeness_ (LLE region, in-sample),
-    collision_map_ (rows, cols) bool and closeness_map_ (rows, cols) over the exploration frames.
+    collision_map_ (rows, cols) bool and closeness_map_ (rows, cols) over the exploration frames; contact_point only
+    (None otherwise): contact_labels_ (A, B label ids), contact_coef_ (c1, c2), contact_offset_ (e), contact_radius_
+    and contact_softness_ [px] (the logistic fit), contact_object_ (object group used), object_mean_ (training mean
+    of its centre), train_object_source_ (index into OBJECT_SOURCES per training frame).
     """
 
     def __init__(self, joint_limits, n_components: int = 3, n_neighbors: int = 20, lle_method: str = 'standard',
@@ -325,9 +338,9 @@ class ArmStateLearner:
                  vectorizer_params: Optional[Dict] = None, random_state: Optional[int] = 0, n_folds: int = 5,
                  representation: str = 'relative', self_r2: float = 0.9, external_r2: float = 0.3,
                  min_motion: float = 10.0, recent_frames: int = 5, map_resolution: int = 4,
-                 map_threshold: float = 0.5, map_method: str = 'embedding', rigid_tolerance: float = 2.0,
+                 map_threshold: float = 0.25, map_method: str = 'embedding', rigid_tolerance: float = 2.0,
                  object_tolerance: float = 3.0, margin_quantile: float = 0.01, unplaced_object: str = 'embedding',
-                 move_clearance: float = 3.0):
+                 move_clearance: float = 3.0, object_labels: int = 2):
         lim = np.asarray(joint_limits, dtype=float)
         if lim.shape != (2, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
             raise ValueError('joint_limits must be ((lo0, hi0), (lo1, hi1)) with finite lo < hi')
@@ -356,6 +369,10 @@ class ArmStateLearner:
             raise ValueError(f'unplaced_object must be one of {UNPLACED_POLICIES}')
         if not 0.0 <= move_clearance < 100.0:
             raise ValueError('move_clearance must be in [0, 100) px')
+        if object_labels not in (1, 2):
+            raise ValueError('object_labels must be 1 or 2')
+        if representation == 'contact_point' and n_components > 2:
+            raise ValueError('contact_point embeds a 2-D vector: n_components must be <= 2')
         unknown = set(vectorizer_params or {}) - set(_VECTORIZER_PARAMS)
         if unknown:
             raise ValueError(f'unknown vectorizer parameters: {sorted(unknown)}')
@@ -386,6 +403,7 @@ class ArmStateLearner:
         self.margin_quantile = float(margin_quantile)
         self.unplaced_object = unplaced_object
         self.move_clearance = float(move_clearance)
+        self.object_labels = int(object_labels)
 
     def get_params(self) -> Dict[str, object]:
         """The constructor's parameters (JSON-able), as saved with the model."""
@@ -398,7 +416,7 @@ class ArmStateLearner:
                     map_resolution=self.map_resolution, map_threshold=self.map_threshold, map_method=self.map_method,
                     rigid_tolerance=self.rigid_tolerance, object_tolerance=self.object_tolerance,
                     margin_quantile=self.margin_quantile, unplaced_object=self.unplaced_object,
-                    move_clearance=self.move_clearance)
+                    move_clearance=self.move_clearance, object_labels=self.object_labels)
 
     # --- fitting ------------------------------------------------------------------------------------------
     def fit(self, keypoints: Sequence[FrameKeypoints], joints, contact, stamps=None) -> 'ArmStateLearner':
@@ -422,7 +440,8 @@ class ArmStateLearner:
             self.vectorizer_ = vec
             self._learn_roles(raw, joints)
             self._fit_object_geometry(raw, joints, contact)
-            V = self._raw_vectors(raw)
+            self._fit_contact_point(raw, joints, contact)
+            V = self._raw_vectors(raw, joints)
             self.imputer_ = NearestImputer(vec.n_impute_neighbors).fit(V)
             X = self.imputer_.transform(V)
         models = REGION_MODELS if self.region == 'auto' else (self.region,)
@@ -454,8 +473,9 @@ class ArmStateLearner:
         seen = np.isfinite(P[:, :, 0])
         self.label_mean_ = np.where(seen.any(0)[:, None],
                                     np.nansum(P, axis=0) / np.maximum(seen.sum(0), 1)[:, None], np.nan)
-        if self.representation == 'relative' and not np.any(self.label_roles_ == SELF):
-            raise ValueError('no keypoint label follows the joint readings; cannot build the relative vector')
+        if self.representation != 'absolute' and not np.any(self.label_roles_ == SELF):
+            raise ValueError(f'no keypoint label follows the joint readings; cannot build the {self.representation} '
+                             'vector')
 
     def _fit_object_geometry(self, raw: np.ndarray, joints: np.ndarray, contact: np.ndarray) -> None:
         """The keypoint-distance contact model (module docstring): rigid pairs of the robot's labels (over a lattice
@@ -487,6 +507,115 @@ class ArmStateLearner:
             cap = float(D[hit].min(axis=1).max())
             self.segment_margins_ = np.minimum(np.quantile(D[~hit], self.margin_quantile, axis=0), cap)
         self.object_frames_ = int(known.sum())
+
+    _CONTACT_ATTRS = ('contact_labels_', 'contact_coef_', 'contact_offset_', 'contact_radius_', 'contact_softness_',
+                      'contact_object_', 'object_mean_', 'train_object_source_')
+
+    def _fit_contact_point(self, raw: np.ndarray, joints: np.ndarray, contact: np.ndarray) -> None:
+        """The contact-point vector's parameters (module docstring), from the training frames only."""
+        for name in self._CONTACT_ATTRS:
+            setattr(self, name, None)
+        if self.representation != 'contact_point':
+            return
+        from scipy.optimize import minimize
+        P = raw.reshape(len(raw), -1, 2)
+        if not self.n_objects_:
+            raise ValueError('contact_point needs a learned object: no rigid group of external labels moves')
+        centres = self._object_centres(P)
+        self.contact_object_ = int(np.argmax(np.isfinite(centres[:, :, 0]).sum(axis=0)))   # the most often placed
+        # last link: robot labels that joint 1 moves, placed precisely, rigid with each other; A, B farthest apart
+        lattice = np.stack(np.meshgrid(*[np.linspace(lo, hi, 15) for lo, hi in self.joint_limits],
+                                       indexing='ij'), -1).reshape(-1, 2)
+        R0 = self._robot_points(lattice)
+        step = 0.05
+        moves = np.median(np.linalg.norm(self._robot_points(lattice + [0.0, step]) - R0, axis=2), axis=0) / step
+        on_link = (moves > 0.2 * moves.max()) & (self._label_residuals(P, joints) <= self.rigid_tolerance)
+        pairs = self.rigid_pairs_[(self.rigid_pairs_[:, 0] != self.rigid_pairs_[:, 1])
+                                  & on_link[self.rigid_pairs_[:, 0]] & on_link[self.rigid_pairs_[:, 1]]]
+        if not len(pairs):
+            raise ValueError('contact_point needs two precisely placed robot labels rigid on the last link')
+        span = np.median(np.linalg.norm(R0[:, pairs[:, 0]] - R0[:, pairs[:, 1]], axis=2), axis=0)
+        self.contact_labels_ = self.self_labels_[pairs[int(np.argmax(span))]]
+        self.object_mean_ = np.zeros(2)          # placeholder for the track below
+        placed = np.isfinite(centres[:, self.contact_object_, 0])
+        if placed.any():
+            self.object_mean_ = centres[placed, self.contact_object_].mean(axis=0)
+        o, source = self._object_track(P)
+        self.train_object_source_ = source
+        A, M = self._link_frame(joints)
+        rel = A - o
+        use = contact & (source <= 1)             # the frame or one just before places the object
+        if use.sum() < 2 or (~contact & (source <= 1)).sum() < 2:
+            raise ValueError('contact_point needs touch and no-touch frames that place the object')
+        # (1) centroid of the touch frames in the link frame: unknowns (c1, c2, e1, e2)
+        Mc = np.concatenate([M[use], np.broadcast_to(-np.eye(2), (int(use.sum()), 2, 2))], axis=2).reshape(-1, 4)
+        ce = np.linalg.lstsq(Mc, -rel[use].reshape(-1), rcond=None)[0]
+        fit = source <= 1
+        y = contact[fit]
+        w = np.where(y, 0.5 / y.mean(), 0.5 / (1.0 - y.mean()))
+
+        def dist(theta, sel):
+            return np.linalg.norm(rel[sel] + np.einsum('nij,j->ni', M[sel], theta[:2]) - theta[2:4], axis=1)
+
+        d0 = dist(ce, fit)
+        r0 = 0.5 * float(np.median(d0[y]) + np.median(d0[~y]))
+
+        def loss(theta):              # (2) class-balanced logistic loss of (r - ||d||) / s
+            z = (theta[4] - dist(theta, fit)) / np.exp(theta[5])
+            return float(np.sum(w * np.logaddexp(0.0, np.where(y, -z, z))) / len(y))
+
+        res = minimize(loss, np.r_[ce, r0, np.log(5.0)], method='Nelder-Mead',
+                       options=dict(maxiter=4000, xatol=1e-5, fatol=1e-7))
+        theta = res.x if np.all(np.isfinite(res.x)) and res.fun <= loss(np.r_[ce, r0, np.log(5.0)]) else \
+            np.r_[ce, r0, np.log(5.0)]
+        self.contact_coef_, self.contact_offset_ = theta[:2].copy(), theta[2:4].copy()
+        self.contact_radius_, self.contact_softness_ = float(theta[4]), float(np.exp(theta[5]))
+
+    def _link_frame(self, joints: np.ndarray):
+        """A (n, 2) and M (n, 2, 2) = [B - A, perp(B - A)] of the last link at `joints`, from the joint regression."""
+        ia, ib = np.searchsorted(self.self_labels_, self.contact_labels_)
+        R = self._robot_points(np.asarray(joints, dtype=float).reshape(-1, 2))
+        A, u = R[:, ia], R[:, ib] - R[:, ia]
+        return A, np.stack([u, np.stack([-u[:, 1], u[:, 0]], axis=1)], axis=2)
+
+    def _object_track(self, P: np.ndarray):
+        """Object estimate for frames P (n, L, 2) taken in this order: (centres (n, 2), source (n,) index into
+        OBJECT_SOURCES). A frame that does not place the object takes the newest of the `recent_frames` before it
+        ('recent'), else the last estimate of the sequence ('stale'), else the training mean ('mean')."""
+        centre = self._object_centres(P)[:, self.contact_object_]
+        if self.object_labels == 1:               # a single object label: its offset from the template
+            labels = np.flatnonzero(self.object_group_ == self.contact_object_)
+            T = self.object_template_[labels]
+            with np.errstate(invalid='ignore'), warnings.catch_warnings():
+                warnings.simplefilter('ignore', RuntimeWarning)
+                single = np.nanmedian(P[:, labels] - T[None], axis=1) + T.mean(axis=0)
+            hole = ~np.isfinite(centre[:, 0])
+            centre[hole] = single[hole]
+        est = np.empty_like(centre)
+        source = np.zeros(len(P), int)
+        last, last_i = None, 0
+        for i in range(len(P)):
+            if np.isfinite(centre[i, 0]):
+                est[i], last, last_i = centre[i], centre[i], i
+            elif last is not None:
+                est[i], source[i] = last, (1 if i - last_i <= self.recent_frames else 2)
+            else:
+                est[i], source[i] = self.object_mean_, 3
+        return est, source
+
+    def object_track(self, keypoints: Sequence[FrameKeypoints]):
+        """contact_point: the object estimate of frames taken in this order, (centres (n, 2), sources (n,) names
+        from OBJECT_SOURCES; anything but 'frame' means the frame itself did not place the object)."""
+        if self.contact_labels_ is None:
+            raise RuntimeError("object_track needs representation='contact_point'")
+        raw = self.vectorizer_.transform(list(keypoints))
+        est, source = self._object_track(raw.reshape(len(raw), -1, 2))
+        return est, np.array(OBJECT_SOURCES)[source]
+
+    def _contact_vectors(self, joints: np.ndarray, centres: np.ndarray) -> np.ndarray:
+        """(n, 2) d = p - o - e at the joint readings for object centres o (n, 2)."""
+        A, M = self._link_frame(joints)
+        return A + np.einsum('nij,j->ni', M, self.contact_coef_) - centres - self.contact_offset_
 
     def _label_residuals(self, P: np.ndarray, joints: np.ndarray) -> np.ndarray:
         """Median distance [px] between each robot label's seen positions in frames P (n, L, 2) and where the joint
@@ -554,9 +683,13 @@ class ArmStateLearner:
             P[hole] = R[hole]
         return P.ravel()
 
-    def _raw_vectors(self, raw: np.ndarray) -> np.ndarray:
+    def _raw_vectors(self, raw: np.ndarray, joints: Optional[np.ndarray] = None) -> np.ndarray:
         """Vectors to embed (with NaN) from raw labelled positions of frames in order (hidden external labels
-        filled from the preceding frames)."""
+        filled from the preceding frames); contact_point needs the frames' joint readings."""
+        if self.representation == 'contact_point':
+            if joints is None or len(np.asarray(joints).reshape(-1, 2)) != len(raw):
+                raise ValueError('contact_point needs the joint readings of every frame')
+            return self._contact_vectors(joints, self._object_track(raw.reshape(len(raw), -1, 2))[0])
         filled = np.array([self._fill_from_recent(raw[i], raw[max(0, i - self.recent_frames):i])
                            for i in range(len(raw))]) if len(raw) else raw
         return self._vectors_of_positions(filled.reshape(len(filled), -1, 2))
@@ -574,10 +707,11 @@ class ArmStateLearner:
             offset = np.zeros((len(P), 2))
         return (P[:, self.self_labels_] - offset[:, None, :]).reshape(len(P), -1)
 
-    def frame_vectors(self, keypoints: Sequence[FrameKeypoints]) -> np.ndarray:
-        """Imputed vectors (n, d) of new frames taken in this order, as embedded (for evaluation and figures)."""
+    def frame_vectors(self, keypoints: Sequence[FrameKeypoints], joints=None) -> np.ndarray:
+        """Imputed vectors (n, d) of new frames taken in this order, as embedded (for evaluation and figures);
+        `joints` (n, 2): the frames' joint readings (used by contact_point only)."""
         raw = self.vectorizer_.transform(list(keypoints))
-        return self.imputer_.transform(self._raw_vectors(raw))
+        return self.imputer_.transform(self._raw_vectors(raw, None if joints is None else np.asarray(joints, float)))
 
     def _update_map(self) -> None:
         self.train_predicted_ = self.region_.predict(self.lle_.embedding_)
@@ -591,10 +725,12 @@ class ArmStateLearner:
         return len(self.train_joints_)
 
     # --- per-frame state ----------------------------------------------------------------------------------
-    def transform(self, frame: FrameKeypoints, recent: Sequence[FrameKeypoints] = ()) -> Dict[str, object]:
+    def transform(self, frame: FrameKeypoints, recent: Sequence[FrameKeypoints] = (), joints=None) -> Dict[str, object]:
         """State of one new frame: raw vector (NaN where unmatched), labelled count, LLE and PCA coordinates
-        (out of sample), collision prediction and closeness of the LLE contact region. `recent`: frames taken
-        just before (oldest first) that may stand in for hidden external labels.
+        (out of sample), collision prediction and closeness of the LLE contact region, and object_source
+        (contact_point: where the object estimate came from, OBJECT_SOURCES; None otherwise). `recent`: frames
+        taken just before (oldest first) that may stand in for hidden external labels; `joints`: the frame's joint
+        readings (contact_point needs them).
 
         The out-of-sample maps are those of ImageEmbedding.transform (LLE: barycentric weights of the n_neighbors
         nearest training vectors, regularised like scikit-learn's barycenter_weights; PCA: projection), computed
@@ -603,13 +739,22 @@ class ArmStateLearner:
         if not hasattr(self, 'region_'):
             raise RuntimeError('ArmStateLearner is not fitted')
         raw = self.vectorizer_.vectorize(frame)
-        filled = self._fill_from_recent(raw, [self.vectorizer_.vectorize(r) for r in recent])
-        x = self.imputer_.transform(self._vectors_of_positions(filled.reshape(1, -1, 2)))[0]
+        recent_raw = [self.vectorizer_.vectorize(r) for r in recent]
+        source = None
+        if self.representation == 'contact_point':
+            if joints is None:
+                raise ValueError('contact_point needs the joint readings of the frame')
+            o, s = self._object_track(np.array(recent_raw + [raw]).reshape(len(recent_raw) + 1, -1, 2))
+            v, source = self._contact_vectors(joints, o[-1:]), OBJECT_SOURCES[s[-1]]
+        else:
+            filled = self._fill_from_recent(raw, recent_raw)
+            v = self._vectors_of_positions(filled.reshape(1, -1, 2))
+        x = self.imputer_.transform(v)[0]
         y = self.lle_transform(x[None])[0]
         p = self.pca_transform(x[None])[0]
         return dict(vector=raw, labelled=int(np.isfinite(raw).sum() // 2), embedding=y, pca_embedding=p,
                     collision=bool(self.region_.predict(y[None])[0]),
-                    closeness=float(self.region_.closeness(y[None])[0]))
+                    closeness=float(self.region_.closeness(y[None])[0]), object_source=source)
 
     def lle_transform(self, X: np.ndarray) -> np.ndarray:
         """LLE out-of-sample coordinates of imputed vectors (n, d)."""
@@ -685,9 +830,15 @@ class ArmStateLearner:
                 # the object is somewhere this frame does not show: any joint vector may touch it
                 return dict(closeness=np.ones(len(q)), collision=np.ones(len(q), bool), clearance=None,
                             embedding=None, external_seen=seen, objects_placed=0, method=method)
-        P = np.repeat(filled[None], len(q), axis=0)
-        P[:, self.self_labels_] = self._robot_points(q)
-        Y = self.lle_transform(self.imputer_.transform(self._vectors_of_positions(P)))
+        if self.representation == 'contact_point':
+            recent_raw = [self.vectorizer_.vectorize(r) for r in recent]
+            o = self._object_track(np.array(recent_raw + [raw]).reshape(len(recent_raw) + 1, -1, 2))[0][-1]
+            V = self._contact_vectors(q, np.repeat(o[None], len(q), axis=0))
+        else:
+            P = np.repeat(filled[None], len(q), axis=0)
+            P[:, self.self_labels_] = self._robot_points(q)
+            V = self._vectors_of_positions(P)
+        Y = self.lle_transform(self.imputer_.transform(V))
         close = self.region_.closeness(Y)
         return dict(closeness=close, collision=close >= self.map_threshold, clearance=None, embedding=Y,
                     external_seen=seen, objects_placed=-1, method='embedding')
@@ -715,6 +866,34 @@ class ArmStateLearner:
                     objects_placed=pred['objects_placed'], method=pred['method'], new_frames=1 + len(recent))
 
     # --- persistence (np.savez + JSON, no pickle) ---------------------------------------------------------
+    def _contact_arrays(self) -> Dict[str, np.ndarray]:
+        """The contact-point attributes as arrays (empty when representation is not contact_point)."""
+        if self.contact_labels_ is None:
+            return dict(contact_labels=np.zeros(0, int), contact_params=np.zeros(0),
+                        train_object_source=np.zeros(0, int))
+        return dict(contact_labels=np.asarray(self.contact_labels_, int),
+                    contact_params=np.r_[self.contact_coef_, self.contact_offset_, self.contact_radius_,
+                                         self.contact_softness_, self.object_mean_, self.contact_object_],
+                    train_object_source=np.asarray(self.train_object_source_, int))
+
+    def _restore_contact(self, a: Dict[str, np.ndarray]) -> None:
+        for name in self._CONTACT_ATTRS:
+            setattr(self, name, None)
+        labels, params = a['contact_labels'].astype(int).ravel(), a['contact_params'].astype(float).ravel()
+        if (self.representation == 'contact_point') != (len(labels) > 0):
+            raise ModelFileError('contact-point arrays do not match the representation')
+        if not len(labels):
+            return
+        if len(labels) != 2 or len(params) != 9 or not np.all(np.isin(labels, self.self_labels_)):
+            raise ModelFileError('contact-point arrays are malformed')
+        self.contact_labels_ = labels
+        self.contact_coef_, self.contact_offset_ = params[0:2], params[2:4]
+        self.contact_radius_, self.contact_softness_ = float(params[4]), float(params[5])
+        self.object_mean_, self.contact_object_ = params[6:8], int(params[8])
+        if not 0 <= self.contact_object_ < self.n_objects_:
+            raise ModelFileError('contact-point object is not a learned object')
+        self.train_object_source_ = a['train_object_source'].astype(int).ravel()
+
     def save(self, path: os.PathLike) -> None:
         """Write the fitted model to `path` (.npz) atomically: a temp file in the same directory + os.replace."""
         path = Path(path)
@@ -742,6 +921,7 @@ class ArmStateLearner:
             label_r2=self.label_r2_, label_motion=self.label_motion_, label_mean=self.label_mean_,
             rigid_pairs=self.rigid_pairs_, object_group=self.object_group_, object_template=self.object_template_,
             segment_margins=self.segment_margins_, object_frames=np.array(self.object_frames_),
+            **self._contact_arrays(),
             imputer_vectors=np.where(self.imputer_.observed_, self.imputer_.values_, np.nan))
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
@@ -807,6 +987,7 @@ class ArmStateLearner:
         if self.rigid_pairs_.size and not 0 <= self.rigid_pairs_.min() <= self.rigid_pairs_.max() < len(
                 self.self_labels_):
             raise ModelFileError('rigid pairs name labels the robot does not have')
+        self._restore_contact(a)
         self.imputer_ = NearestImputer(vec.n_impute_neighbors).fit(a['imputer_vectors'])
         X = a['train_vectors']
         if self.imputer_.values_.shape[1] != X.shape[1]:

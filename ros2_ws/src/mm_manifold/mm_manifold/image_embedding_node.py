@@ -163,7 +163,7 @@ class ImageEmbeddingNode(Node):
                                "labels) or 'embedding' (the predicted frame embedded, the contact region applied; "
                                "the paper's route)", read_only=True,
                                additional_constraints='one of keypoint_distance, embedding'),
-            map_threshold=declare(self, 'map_threshold', 0.5, 'Closeness to the contact region at or above which a '
+            map_threshold=declare(self, 'map_threshold', 0.25, 'Closeness to the contact region at or above which a '
                                   'predicted frame counts as contact (embedding route; chosen by mm_bringup.tune_arm)',
                                   min_value=-9.9, max_value=9.9, read_only=True),
             object_tolerance=declare(self, 'object_tolerance', 3.0, 'px: keypoint labels whose mutual offsets stay '

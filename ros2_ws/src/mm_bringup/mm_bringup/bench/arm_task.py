@@ -8,10 +8,12 @@ Parts:
   paper's sphere: centre = mean of the contact frames, radius by cross-validation on the training frames),
   `lle_best_*` / `pca_best_*` (the region model with the best cross-validated TPR - FPR among sphere, Mahalanobis
   ellipsoid and quadric), `raw_sphere_*` / `raw_knn_*` (no embedding), `geometry_*` (no embedding: the learned object
-  placed where the test frame shows it against the robot's segments, the keypoint-distance map route), each with tp / fn / fp / tn / tpr / fpr, and
+  placed where the test frame shows it against the robot's segments, the keypoint-distance map route, run by the
+  planning vector's learner), each with tp / fn / fp / tn / tpr / fpr, and
   the class balance (`eval_*_contact`). The learner's settings (representation, LLE method, dimensions) come from
-  mm_bringup.tune_arm, run on scenes and seeds disjoint from these.
-- Planning before moving (`plan_*`): a learner fitted on the same exploration frames labelled by the whole-arm
+  mm_bringup.tune_arm, run on scenes and seeds disjoint from these; COMPARE_PARAMS' vectors get rows
+  `<name>_lle_sphere_*`, `<name>_lle_best_*`, `<name>_pca_sphere_*` on the same frames.
+- Planning before moving (`plan_*`): a learner (PLAN_PARAMS) fitted on the same exploration frames labelled by the whole-arm
   contact sense (arm/contact's arm_in_contact_at_frame, image_embedding's default label) is KEPT; for each of
   PLACEMENTS new object placements (generator PLACEMENT_SEED) with the object in the way of the straight move
   between a start and a goal cell (chosen on the ground-truth map, which also must hold a contact-free path), the
@@ -22,8 +24,8 @@ Parts:
   rewards, and dp_planner's default clearance reward) is executed cell by cell; success = the goal cell centre is
   reached and no arm part touches the object anywhere along the executed motion (checked every 0.02 rad). The same
   is measured with the keypoint-distance route (`plan_keypoint_distance_*`: the learned object placed where the frame
-  shows it, against the robot's predicted segments with per-segment contact distances) and for the tables' learner,
-  which learned from the hand's touch sensor alone (`plan_hand_touch_*`).
+  shows it, against the robot's predicted segments with per-segment contact distances) and for a PLAN_PARAMS learner
+  that learned from the hand's touch sensor alone, the tables' label (`plan_hand_touch_*`).
 - Synthetic check (Section 3.4): 1000 frames, 10 object + 10 hand + 5 background keypoints, object and hand both
   uniform, 10 % removed; best |Spearman| of one LLE / PCA axis with the hand-object distance.
 """
@@ -49,7 +51,16 @@ NAME = 'arm_task'
 SCENE_SEED, TRAIN_SEED, TEST_SEED, PLACEMENT_SEED = 0, 1, 2, 3       # benchmark only; tune_arm uses others
 PLACEMENTS = 40
 # Learner settings chosen by mm_bringup.tune_arm (results/tune_arm.json) on scenes and seeds disjoint from the above.
-LEARNER_PARAMS = dict(representation='relative', lle_method='standard', n_components=4)
+LEARNER_PARAMS = dict(representation='contact_point', lle_method='standard', n_components=2, object_labels=1)
+# The kept model that plans before moving: chosen separately by tune_arm's 'map' stage (DP success on its own scene),
+# where the contact-point vector planned worse than the relative one; the image_embedding node's defaults agree.
+PLAN_PARAMS = dict(representation='relative', lle_method='standard', n_components=4)
+# Other keypoint vectors scored on the same frames beside it (Tables 1-2 rows '<name>_lle_sphere', ...): the previous
+# choice, all robot labels relative to the object, which is also the planning vector and so scores the geometry row
+# (whose frames without a placed object fall back to that vector's region and map_threshold).
+COMPARE_PARAMS = dict(relative=PLAN_PARAMS)
+GEOMETRY_FROM = 'relative'
+COMPARE_KEYS = ('lle_sphere', 'lle_best', 'pca_sphere')
 
 
 # --- ground truth and execution (evaluation only) ------------------------------------------------------------------
@@ -210,8 +221,17 @@ def tables_result(ev: Dict[str, object]) -> Dict[str, object]:
         for k, v in ev[key].items():
             if isinstance(v, (int, float, str, bool)) or v is None:
                 out[f'{key}_{k}'] = v
+    compared = tuple(f'{name}_' for name in COMPARE_PARAMS)
+    for name in COMPARE_PARAMS:
+        for key in COMPARE_KEYS:
+            for k, v in ev.get(f'{name}_{key}', {}).items():
+                if isinstance(v, (int, float, str, bool)) or v is None:
+                    out[f'{name}_{key}_{k}'] = v
+        out[f'{name}_params'] = ev.get(f'{name}_params')
+        if f'{name}_object_sources_test' in ev:
+            out[f'{name}_object_sources_test'] = ev[f'{name}_object_sources_test']
     for k, v in ev.items():
-        if not k.startswith('_') and not k.startswith(('lle_', 'pca_', 'raw_')):
+        if not k.startswith('_') and not k.startswith(('lle_', 'pca_', 'raw_') + compared):
             out[f'eval_{k}'] = v
     out['lle_cv_candidates'], out['pca_cv_candidates'] = ev['lle_cv_candidates'], ev['pca_cv_candidates']
     return out
@@ -221,22 +241,23 @@ def run(output_dir: Path, quick: bool) -> dict:
     t0 = time.perf_counter()
     extractor = KeypointExtractor()
     ev = evaluate_collision_prediction(400 if quick else 1000, 150 if quick else 300, SCENE_SEED, TRAIN_SEED,
-                                       TEST_SEED, learner_params=LEARNER_PARAMS, extractor=extractor)
+                                       TEST_SEED, learner_params=LEARNER_PARAMS, extractor=extractor,
+                                       compare_params=COMPARE_PARAMS, geometry_from=GEOMETRY_FROM)
     out: Dict[str, object] = dict(ran_in_process=['tables', 'plan before moving', 'synthetic check'],
                                   seeds=dict(scene=SCENE_SEED, train=TRAIN_SEED, test=TEST_SEED,
                                              placements=PLACEMENT_SEED), learner_params=LEARNER_PARAMS)
     out.update(tables_result(ev))
     out['tables_s'] = time.perf_counter() - t0
-    learner = ev['_learner']
     out['learner_fit_s'] = ev['learner_fit_s']
+    out['plan_learner_params'] = PLAN_PARAMS
     n_plan = 8 if quick else PLACEMENTS
-    whole_arm = ArmStateLearner(ev['_model'].joint_limits, **LEARNER_PARAMS).fit(
-        ev['_kps_train'], ev['_train']['joints'], ev['_train']['any_contact'])
+    whole_arm, hand_touch = (ArmStateLearner(ev['_model'].joint_limits, **PLAN_PARAMS).fit(
+        ev['_kps_train'], ev['_train']['joints'], ev['_train'][label]) for label in ('any_contact', 'contact'))
     out['plan_segment_margins_px'] = dict(zip(('min', 'median', 'max'), np.percentile(
         whole_arm.segment_margins_, [0, 50, 100]).tolist())) if len(whole_arm.segment_margins_) else None
     out.update(plan_before_moving(whole_arm, ev['_model'], n_plan, extractor=extractor))
     for prefix, planner_learner, method in (('plan_keypoint_distance_', whole_arm, 'keypoint_distance'),
-                                            ('plan_hand_touch_', learner, None)):
+                                            ('plan_hand_touch_', hand_touch, None)):
         out.update({k.replace('plan_', prefix, 1): v for k, v in plan_before_moving(
             planner_learner, ev['_model'], n_plan, extractor=extractor, method=method).items()})
     out.update(synthetic_check())
