@@ -1,4 +1,5 @@
-"""Run the benchmark parts and write results/<name>.json (machine info included, figures measured in this run)."""
+"""Run the benchmark parts and write results/<name>.json (machine info included, figures measured in this run); a
+--quick smoke run writes under <output>/quick/ so it never replaces the full-size figures."""
 from __future__ import annotations
 
 import argparse
@@ -18,13 +19,18 @@ def machine_info() -> dict:
             'rmw': os.environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp (default)')}
 
 
+def output_dir(output: str, quick: bool) -> Path:
+    """Where a run's JSON goes: a smoke run's smaller sizes must not pass for the full benchmark's figures."""
+    return Path(output) / 'quick' if quick else Path(output)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument('--output', default='results')
     parser.add_argument('--only', nargs='*', default=None, help=f'parts to run (default: all of {PARTS})')
-    parser.add_argument('--quick', action='store_true', help='smaller sizes for a smoke run')
+    parser.add_argument('--quick', action='store_true', help='smaller sizes for a smoke run (written to <output>/quick)')
     args = parser.parse_args(argv)
-    out = Path(args.output)
+    out = output_dir(args.output, args.quick)
     out.mkdir(parents=True, exist_ok=True)
     failed = []
     for name in args.only or PARTS:
