@@ -465,6 +465,8 @@ def test_save_load_round_trip(model, tmp_path, robot):
     np.testing.assert_allclose(loaded.virtual_.step(coords[0], [1.0, -2.0]), model.virtual_.step(coords[0],
                                                                                                    [1.0, -2.0]))
     assert loaded.virtual_.reentry_rms_after_ == model.virtual_.reentry_rms_after_
+    # the blind time the re-entry error was measured over travels with the model (the state's virtual_uncertainty)
+    assert loaded.virtual_.mean_excursion_steps_ == model.virtual_.mean_excursion_steps_ >= 1
     np.testing.assert_array_equal(loaded.sensor2_noise_, model.sensor2_noise_)
     assert loaded.sensor1_gain_ == model.sensor1_gain_
 
@@ -525,6 +527,8 @@ def test_load_rejects_missing_corrupt_and_foreign_files(model, tmp_path):
         'string array': ({'grid_mean': np.array(['a', 'b', 'c'])}, 'grid_mean'),
         'negative noise': ({'meta': np.array(json.dumps({**meta, 'sensor2_noise': [-1.0, 0.0]}))}, 'sensor2_noise'),
         'gain above 1': ({'meta': np.array(json.dumps({**meta, 'sensor1_gain': 1.5}))}, 'sensor1_gain'),
+        'zero excursion steps': ({'meta': np.array(json.dumps({**meta, 'mean_excursion_steps': 0.0}))},
+                                 'mean_excursion_steps'),
         'zero scale': ({'field1_scale': np.zeros(2)}, 'field1_scale'),
     }
     for case, (changes, reason) in crafted.items():

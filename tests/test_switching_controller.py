@@ -273,8 +273,9 @@ def test_stop_decision_is_reliable_under_reading_noise():
     """The stop is a sequential test on the mean of readings taken standing still, with the learned noise as the
     least spread: noise-free readings decide after settle_steps; noisy ones rarely end the task just outside the
     tolerance (with the window's own spread alone, 4 readings often look tighter than they are: ~2 %)."""
-    assert settle_trials(np.array([0.009, 0.0]), 0.0) == (1.0, SwitchingController(DT).settle_steps)
-    assert settle_trials(np.array([0.0101, 0.0]), 0.0)[0] == 0.0
+    # noise-free readings: every trial is the same, a few show it
+    assert settle_trials(np.array([0.009, 0.0]), 0.0, n=5) == (1.0, SwitchingController(DT).settle_steps)
+    assert settle_trials(np.array([0.0101, 0.0]), 0.0, n=5)[0] == 0.0
     assert settle_trials(np.array([0.0105, 0.0]), 0.0025)[0] <= 0.005          # measured 0.002
     assert settle_trials(np.array([0.004, 0.0]), 0.0025)[0] >= 0.97            # measured 0.99
 

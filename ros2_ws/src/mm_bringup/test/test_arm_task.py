@@ -58,8 +58,8 @@ def test_geometry_row_is_scored_by_the_named_learner():
     relative = dict(representation='relative', n_components=4, n_folds=3)
     with pytest.raises(ValueError, match='geometry_from'):
         evaluate_collision_prediction(200, 60, 5, 51, 52, learner_params=contact_point, geometry_from='relative')
-    out = evaluate_collision_prediction(200, 60, 5, 51, 52, learner_params=contact_point, n_neighbors_grid=(10,),
+    out = evaluate_collision_prediction(150, 40, 5, 51, 52, learner_params=contact_point, n_neighbors_grid=(10,),
                                         compare_params=dict(relative=relative), geometry_from='relative')
     row = out['geometry']
-    assert row['vector'] == 'relative' and row['tp'] + row['fn'] + row['fp'] + row['tn'] == 60
+    assert row['vector'] == 'relative' and row['tp'] + row['fn'] + row['fp'] + row['tn'] == 40
     assert out['representation'] == 'contact_point' and out['relative_params']['representation'] == 'relative'

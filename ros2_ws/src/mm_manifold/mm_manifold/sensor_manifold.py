@@ -31,7 +31,7 @@ from mm_manifold.virtual_space import Excursion, ExtrapolatedField, VirtualSenso
 # The active spaces are the state message's constants (their one home).
 SPACE_NONE, SPACE_SENSOR1 = ManifoldState.SPACE_NONE, ManifoldState.SPACE_SENSOR1
 SPACE_VIRTUAL, SPACE_SENSOR2 = ManifoldState.SPACE_VIRTUAL_SENSOR1, ManifoldState.SPACE_SENSOR2
-FORMAT_VERSION = 5              # 5: sensor1_gain
+FORMAT_VERSION = 6              # 5: sensor1_gain; 6: mean_excursion_steps
 
 
 def group_in_range(readings: np.ndarray, group) -> np.ndarray:
@@ -241,6 +241,7 @@ class SensorManifoldModel:
                 'n_excursions': self.n_excursions_,
                 'reentry_rms_before': self.virtual_.reentry_rms_before_,
                 'reentry_rms_after': self.virtual_.reentry_rms_after_,
+                'mean_excursion_steps': self.virtual_.mean_excursion_steps_,
                 'validation_folds': self.validation_folds, 'heldout_bound': self.heldout_bound,
                 'heldout_sensor2_error': self.heldout_sensor2_error_,
                 'heldout_reentry_error': self.heldout_reentry_error_, 'heldout_count': self.heldout_count_,
@@ -299,6 +300,9 @@ class SensorManifoldModel:
             value = meta[name]
             if not (isinstance(value, float) and (np.isnan(value) or (np.isfinite(value) and value >= 0))):
                 raise ValueError(f'{name} {value!r} must be a number >= 0 (NaN: no excursion)')
+        steps = meta['mean_excursion_steps']
+        if not (isinstance(steps, float) and (np.isnan(steps) or (np.isfinite(steps) and steps >= 1))):
+            raise ValueError(f'mean_excursion_steps {steps!r} must be a number >= 1 (NaN: no excursion)')
         rows, cols, degree = meta['grid_rows'], meta['grid_cols'], meta['jacobian_degree']
         f = n_polynomial_features(degree, 2)
         a = rows * cols
@@ -358,6 +362,7 @@ class SensorManifoldModel:
         virtual.field_ = ExtrapolatedField(model.field1_, correction=arrays['virtual_correction'])
         virtual.reentry_rms_before_, virtual.reentry_rms_after_ = meta['reentry_rms_before'], meta['reentry_rms_after']
         virtual.n_excursions_ = meta['n_excursions']
+        virtual.mean_excursion_steps_ = steps
         virtual.overlap_coordinates_ = arrays['overlap_coordinates']
         virtual.overlap_sensor2_ = arrays['overlap_sensor2']
         virtual.overlap_exits_ = arrays['overlap_exits']

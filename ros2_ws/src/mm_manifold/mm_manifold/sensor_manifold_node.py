@@ -490,15 +490,11 @@ class SensorManifold(Node):
             if space == SPACE_VIRTUAL:
                 # Re-entry error grows roughly with the time spent blind; scale by the practised excursions.
                 msg.virtual_uncertainty = float(m.virtual_.reentry_rms_after_ * self.tracker.virtual_steps
-                                                / max(self._mean_excursion_steps(), 1.0))
+                                                / m.virtual_.mean_excursion_steps_)
             if self.jacobian_pub.get_subscription_count():      # for monitoring only: not computed for no one
                 self._publish_jacobian(space, coords, s2, stamp)
         self.state_pub.publish(msg)
         self.last_state = msg
-
-    def _mean_excursion_steps(self) -> float:
-        steps = [len(e.commands) for e in getattr(self.model, 'excursions_', []) if e.end is not None]
-        return float(np.mean(steps)) if steps else 40.0
 
     def _publish_jacobian(self, space: int, coords, s2, stamp) -> None:
         m = self.model

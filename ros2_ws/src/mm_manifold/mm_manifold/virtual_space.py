@@ -236,7 +236,8 @@ class VirtualSensorSpace:
     was chosen on offline explorations and tasks disjoint from the benchmark's, where it took clean success from
     0.68-1.00 to 1.00 on each of three explorations and shortened the median path (0 and 1e-3, 2e-3, 1e-2 tried).
     Learned: field_ (corrected PolynomialJacobianField), reentry_rms_before_/after_, overlap_coordinates_,
-    overlap_sensor2_, overlap_exits_, overlap_travel_, n_excursions_.
+    overlap_sensor2_, overlap_exits_, overlap_travel_, n_excursions_, mean_excursion_steps_ (mean command steps of the
+    fitted excursions: the blind time the re-entry error was measured over; NaN without any).
     """
 
     def __init__(self, dt: float, box: np.ndarray, bounds: Optional[np.ndarray] = None, prior_weight: float = 1.0,
@@ -262,6 +263,7 @@ class VirtualSensorSpace:
         self.field_ = ExtrapolatedField(in_range_field)
         closed = [e for e in excursions if e.end is not None and 0 < len(e.commands) <= self.max_excursion_steps]
         self.n_excursions_ = len(closed)
+        self.mean_excursion_steps_ = float(np.mean([len(e.commands) for e in closed])) if closed else float('nan')
         shape = in_range_field.theta_.shape
         if closed:
             starts, commands, ends = self._pack(closed)
