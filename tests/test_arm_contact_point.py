@@ -111,7 +111,11 @@ def test_save_load_round_trip(scene, tmp_path):
     # contact-point arrays that do not match the representation are refused
     with np.load(path, allow_pickle=False) as f:
         arrays = {k: f[k] for k in f.files}
-    arrays['contact_labels'] = np.zeros(0, int)
-    np.savez(tmp_path / 'bad.npz', **arrays)
-    with pytest.raises(ModelFileError):
-        ArmStateLearner.load(tmp_path / 'bad.npz')
+    params = arrays['contact_params'].astype(float)
+    bad_radius, nan_coef = params.copy(), params.copy()
+    bad_radius[4], nan_coef[0] = -1.0, np.nan
+    for case in (dict(contact_labels=np.zeros(0, int)), dict(contact_params=bad_radius),
+                 dict(contact_params=nan_coef), dict(train_object_source=np.full(3, 7))):
+        np.savez(tmp_path / 'bad.npz', **{**arrays, **case})
+        with pytest.raises(ModelFileError):
+            ArmStateLearner.load(tmp_path / 'bad.npz')

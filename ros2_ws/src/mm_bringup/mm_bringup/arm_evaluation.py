@@ -181,7 +181,8 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
     from and is scored against, 'hand' (the hand's touch sensor, the paper's label) or 'any_part' (a touch sensor
     covering the whole arm). `compare_params` {name: learner params}: a learner per entry fitted on the same
     training frames and scored on the same test frames, keys '<name>_lle_sphere', '<name>_lle_best' and
-    '<name>_pca_sphere' (another keypoint vector beside the learner's own). `geometry_from`: the compare_params entry
+    '<name>_pca_sphere' (another keypoint vector beside the learner's own; the fitted learners are returned as
+    '_compare_learners'). `geometry_from`: the compare_params entry
     whose learner scores the 'geometry' row (its embedding fallback and map_threshold belong to that vector; default
     the learner's own)."""
     from scipy.stats import spearmanr
@@ -226,21 +227,21 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
     if learner.representation == 'contact_point':
         result['object_sources_test'] = _source_counts(learner.object_track(kps_test)[1])
     result.update(embedding_rows(learner, X, c, X_test, c_test, d_test, n_neighbors_grid))
-    geometry_learner = learner
+    compared = {}
     for name, params in (compare_params or {}).items():
-        other = ArmStateLearner(model.joint_limits, **params).fit(kps_train, train['joints'], train[label])
+        other = compared[name] = ArmStateLearner(model.joint_limits, **params).fit(kps_train, train['joints'],
+                                                                                  train[label])
         rows = embedding_rows(other, other.train_vectors_, c, other.frame_vectors(kps_test, test['joints']), c_test,
                               d_test, n_neighbors_grid, keys=('lle_sphere', 'lle_best', 'pca_sphere'))
         result.update({f'{name}_{k}': v for k, v in rows.items() if not k.startswith('_') and 'cv_candidates' not in k})
         result[f'{name}_params'] = dict(params, vector_width=int(other.train_vectors_.shape[1]))
-        if name == geometry_from:
-            geometry_learner = other
         if other.representation == 'contact_point':
             result[f'{name}_object_sources_test'] = _source_counts(other.object_track(kps_test)[1])
     result.update(raw_vector_baselines(X, c, X_test, c_test, random_state=learner.random_state))
     # no embedding, the image geometry: the learned object placed where the frame alone shows it, against the
     # robot's segments at the frame's joints (the keypoint-distance map route); frames that do not place the
     # object fall back to the LLE region
+    geometry_learner = compared[geometry_from] if geometry_from is not None else learner
     t0 = time.perf_counter()
     preds = [geometry_learner.predict_frames(k, q[None], method='keypoint_distance') for k, q in zip(kps_test, test['joints'])]
     geometry_ms = 1e3 * (time.perf_counter() - t0) / n_test
@@ -253,7 +254,7 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
                               closeness_distance_spearman=float(spearmanr(closeness, d_test)[0]),
                               predict_ms=geometry_ms)
     result['_learner'], result['_test'], result['_kps_test'], result['_model'] = learner, test, kps_test, model
-    result['_train'], result['_kps_train'] = train, kps_train
+    result['_train'], result['_kps_train'], result['_compare_learners'] = train, kps_train, compared
     return result
 
 

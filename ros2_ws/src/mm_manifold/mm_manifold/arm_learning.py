@@ -603,6 +603,11 @@ class ArmStateLearner:
                 est[i], source[i] = self.object_mean_, 3
         return est, source
 
+    def _newest_object(self, raw: np.ndarray, recent_raw: Sequence[np.ndarray]):
+        """Object estimate (2,) and its source index of the frame `raw` after the frames `recent_raw` (oldest first)."""
+        est, source = self._object_track(np.array(list(recent_raw) + [raw]).reshape(len(recent_raw) + 1, -1, 2))
+        return est[-1], int(source[-1])
+
     def object_track(self, keypoints: Sequence[FrameKeypoints]):
         """contact_point: the object estimate of frames taken in this order, (centres (n, 2), sources (n,) names
         from OBJECT_SOURCES; anything but 'frame' means the frame itself did not place the object)."""
@@ -744,8 +749,8 @@ class ArmStateLearner:
         if self.representation == 'contact_point':
             if joints is None:
                 raise ValueError('contact_point needs the joint readings of the frame')
-            o, s = self._object_track(np.array(recent_raw + [raw]).reshape(len(recent_raw) + 1, -1, 2))
-            v, source = self._contact_vectors(joints, o[-1:]), OBJECT_SOURCES[s[-1]]
+            o, s = self._newest_object(raw, recent_raw)
+            v, source = self._contact_vectors(joints, o[None]), OBJECT_SOURCES[s]
         else:
             filled = self._fill_from_recent(raw, recent_raw)
             v = self._vectors_of_positions(filled.reshape(1, -1, 2))
@@ -831,8 +836,7 @@ class ArmStateLearner:
                 return dict(closeness=np.ones(len(q)), collision=np.ones(len(q), bool), clearance=None,
                             embedding=None, external_seen=seen, objects_placed=0, method=method)
         if self.representation == 'contact_point':
-            recent_raw = [self.vectorizer_.vectorize(r) for r in recent]
-            o = self._object_track(np.array(recent_raw + [raw]).reshape(len(recent_raw) + 1, -1, 2))[0][-1]
+            o = self._newest_object(raw, [self.vectorizer_.vectorize(r) for r in recent])[0]
             V = self._contact_vectors(q, np.repeat(o[None], len(q), axis=0))
         else:
             P = np.repeat(filled[None], len(q), axis=0)
@@ -886,6 +890,8 @@ class ArmStateLearner:
             return
         if len(labels) != 2 or len(params) != 9 or not np.all(np.isin(labels, self.self_labels_)):
             raise ModelFileError('contact-point arrays are malformed')
+        if not np.all(np.isfinite(params)) or params[4] <= 0 or params[5] <= 0:
+            raise ModelFileError('contact-point parameters must be finite with a positive radius and softness')
         self.contact_labels_ = labels
         self.contact_coef_, self.contact_offset_ = params[0:2], params[2:4]
         self.contact_radius_, self.contact_softness_ = float(params[4]), float(params[5])
@@ -893,6 +899,8 @@ class ArmStateLearner:
         if not 0 <= self.contact_object_ < self.n_objects_:
             raise ModelFileError('contact-point object is not a learned object')
         self.train_object_source_ = a['train_object_source'].astype(int).ravel()
+        if np.any((self.train_object_source_ < 0) | (self.train_object_source_ >= len(OBJECT_SOURCES))):
+            raise ModelFileError('train_object_source names no object source')
 
     def save(self, path: os.PathLike) -> None:
         """Write the fitted model to `path` (.npz) atomically: a temp file in the same directory + os.replace."""

@@ -251,8 +251,9 @@ def run(output_dir: Path, quick: bool) -> dict:
     out['learner_fit_s'] = ev['learner_fit_s']
     out['plan_learner_params'] = PLAN_PARAMS
     n_plan = 8 if quick else PLACEMENTS
-    whole_arm, hand_touch = (ArmStateLearner(ev['_model'].joint_limits, **PLAN_PARAMS).fit(
-        ev['_kps_train'], ev['_train']['joints'], ev['_train'][label]) for label in ('any_contact', 'contact'))
+    whole_arm = ArmStateLearner(ev['_model'].joint_limits, **PLAN_PARAMS).fit(
+        ev['_kps_train'], ev['_train']['joints'], ev['_train']['any_contact'])
+    hand_touch = ev['_compare_learners'][GEOMETRY_FROM]     # PLAN_PARAMS on the hand's touch label, fitted once
     out['plan_segment_margins_px'] = dict(zip(('min', 'median', 'max'), np.percentile(
         whole_arm.segment_margins_, [0, 50, 100]).tolist())) if len(whole_arm.segment_margins_) else None
     out.update(plan_before_moving(whole_arm, ev['_model'], n_plan, extractor=extractor))
