@@ -42,8 +42,8 @@ def run_nodes(node_factories: Sequence[Callable[[], Node]], args: Optional[Seque
     rclpy's own signal handlers shut the context down inside the handler, which races with an executor that is
     still working (`RCLError: failed to initialize wait set: the given context is not valid`, exit 1). Here a
     signal only sets a flag (Python runs the handler in the main thread once spin_once has returned), the loop
-    ends and the node is destroyed before the context is shut down. Further signals during clean-up are ignored
-    (SIGKILL still works); signals before the node's imports are done keep Python's defaults.
+    ends and the node is destroyed before the context is shut down. Further signals during clean-up and exit are
+    ignored (SIGKILL still works); signals before the node's imports are done keep Python's defaults.
     A start-up configuration the node refuses (a parameter out of its range, of the wrong type, or a ValueError from
     the constructor) ends the process with one error line and exit status 2 instead of a traceback.
     """
@@ -82,6 +82,11 @@ def run_nodes(node_factories: Sequence[Callable[[], Node]], args: Optional[Seque
         for node in reversed(nodes):
             node.destroy_node()
         rclpy.try_shutdown()
+        # Python's finalisation puts SIG_DFL back for signals with a Python handler, so a signal arriving while the
+        # interpreter exits would kill the process (status -2, seen under load with a second SIGINT); an ignored
+        # signal stays ignored.
+        for sig in _STOP_SIGNALS:
+            signal.signal(sig, signal.SIG_IGN)
         if refused:
             print(refused, file=sys.stderr)
             raise SystemExit(2)
