@@ -19,7 +19,8 @@ def scene():
     ext = KeypointExtractor()
     kps = render_keypoints(model, data['joints'], data['object'], ext)
     learner = ArmStateLearner(model.joint_limits, representation='contact_point', n_components=2, random_state=0,
-                              n_folds=3, object_labels=1).fit(kps, data['joints'], data['contact'])
+                              n_folds=3, object_labels=1, lle_metric='local').fit(kps, data['joints'],
+                                                                                  data['contact'])
     return model, data, learner, ext
 
 
@@ -80,6 +81,26 @@ def test_a_frame_that_hides_the_object_falls_back_to_earlier_estimates(scene):
     np.testing.assert_array_equal(m1['collision'], m2['collision'])
 
 
+def test_an_agreed_recent_estimate_comes_before_a_frames_single_label(scene):
+    """object_labels=1: a lone object label is often a hand keypoint taken for the object's, so the newest estimate
+    on which two labels agreed (within recent_frames) comes first; after that the lone label places the object."""
+    _, _, learner, _ = scene
+    labels = np.flatnonzero(learner.object_group_ == learner.contact_object_)
+    assert len(labels) >= 2
+    template = learner.object_template_[labels]
+    n = learner.recent_frames + 3
+    P = np.full((n, learner.vectorizer_.n_labels_, 2), np.nan)
+    P[0, labels] = template + [30.0, 10.0]                   # all the object's labels: agreed
+    P[1:, labels[0]] = template[0] + [80.0, -40.0]           # afterwards one label only, somewhere else
+    centres, sources = learner._object_track(P)
+    agreed, lone = template.mean(axis=0) + [30.0, 10.0], template.mean(axis=0) + [80.0, -40.0]
+    k = learner.recent_frames + 1
+    np.testing.assert_allclose(centres[:k], np.repeat(agreed[None], k, axis=0))
+    assert sources[:k].tolist() == [0] + [1] * learner.recent_frames
+    np.testing.assert_allclose(centres[k:], np.repeat(lone[None], 2, axis=0))
+    assert sources[k:].tolist() == [0, 0]
+
+
 def test_contact_point_needs_the_joint_readings_and_two_dimensions(scene):
     model, data, learner, ext = scene
     frame = ext(model.render(data['joints'][0]))
@@ -114,8 +135,11 @@ def test_save_load_round_trip(scene, tmp_path):
     params = arrays['contact_params'].astype(float)
     bad_radius, nan_coef = params.copy(), params.copy()
     bad_radius[4], nan_coef[0] = -1.0, np.nan
+    assert not np.allclose(loaded.lle_.metric_map_, np.eye(2))
+    np.testing.assert_array_equal(loaded.lle_.metric_map_, learner.lle_.metric_map_)
     for case in (dict(contact_labels=np.zeros(0, int)), dict(contact_params=bad_radius),
-                 dict(contact_params=nan_coef), dict(train_object_source=np.full(3, 7))):
+                 dict(contact_params=nan_coef), dict(train_object_source=np.full(3, 7)),
+                 dict(lle_metric_map=np.full((2, 2), np.nan)), dict(lle_metric_map=np.eye(3))):
         np.savez(tmp_path / 'bad.npz', **{**arrays, **case})
         with pytest.raises(ModelFileError):
             ArmStateLearner.load(tmp_path / 'bad.npz')

@@ -10,6 +10,7 @@ from sklearn.decomposition import PCA
 from sklearn.manifold import LocallyLinearEmbedding
 from threadpoolctl import threadpool_limits
 
+LLE_METRICS = ('unit', 'local')     # ImageEmbedding: unit-covariance LLE coordinates, or scaled to neighbour distances
 
 class ImageEmbedding:
     """Embed imputed keypoint vectors in `n_components` dimensions with LLE (method='lle') or PCA (method='pca').
@@ -27,14 +28,23 @@ class ImageEmbedding:
     paper's plain LLE. `transform` embeds new vectors out of sample with LLE's barycentric weights on the
     `n_neighbors` nearest training vectors, so a new frame lands among the training frames that look like it.
 
+    LLE finds its coordinates only up to a linear map, and fixes it by making them unit-covariance: an input whose
+    spread differs between directions comes out squeezed along the wider one, so a disc of the input (the hand
+    within reach of the object) becomes an ellipse and the paper's sphere fits it badly. lle_metric='local' chooses
+    the linear map instead so that squared distances between neighbours match those of the (scaled) input vectors
+    (least squares over every training point's n_neighbors; the map is the square root of the fitted metric); it is
+    applied to the stored embedding, so transform and a saved model carry it. 'unit' keeps sklearn's coordinates.
+
     Parameters: n_components, n_neighbors, method, scaling ('global' or 'standard'), reg (LLE regulariser),
-    lle_method (sklearn's 'standard', 'modified', 'hessian', 'ltsa'), min_std [px], random_state.
+    lle_method (sklearn's 'standard', 'modified', 'hessian', 'ltsa'), min_std [px], lle_metric ('unit' or
+    'local'), random_state.
     Learned attributes: mean_, scale_, model_ (the sklearn estimator), embedding_ (training embedding),
-    n_samples_seen_.
+    metric_map_ ((n_components, n_components) map applied to sklearn's LLE coordinates; identity for 'unit' and
+    PCA), n_samples_seen_.
     """
 
     def __init__(self, n_components: int = 3, n_neighbors: int = 20, method: str = 'lle', scaling: str = 'global',
-                 reg: float = 1e-3, lle_method: str = 'modified', min_std: float = 2.0,
+                 reg: float = 1e-3, lle_method: str = 'modified', min_std: float = 2.0, lle_metric: str = 'unit',
                  random_state: Optional[int] = 0):
         if n_components < 1 or n_neighbors < 2:
             raise ValueError('n_components >= 1 and n_neighbors >= 2 are required')
@@ -42,6 +52,8 @@ class ImageEmbedding:
             raise ValueError("method must be 'lle' or 'pca'")
         if scaling not in ('global', 'standard'):
             raise ValueError("scaling must be 'global' or 'standard'")
+        if lle_metric not in LLE_METRICS:
+            raise ValueError(f'lle_metric must be one of {LLE_METRICS}')
         self.n_components = int(n_components)
         self.n_neighbors = int(n_neighbors)
         self.method = method
@@ -49,6 +61,7 @@ class ImageEmbedding:
         self.reg = float(reg)
         self.lle_method = lle_method
         self.min_std = float(min_std)
+        self.lle_metric = lle_metric
         self.random_state = random_state
 
     def _check(self, X: np.ndarray) -> np.ndarray:
@@ -77,6 +90,11 @@ class ImageEmbedding:
         else:
             self.model_ = PCA(n_components=self.n_components, random_state=self.random_state)
         self.embedding_ = self.model_.fit_transform(Z)
+        self.metric_map_ = np.eye(self.n_components)
+        if self.method == 'lle' and self.lle_metric == 'local':
+            self.metric_map_ = neighbour_metric_map(Z, self.embedding_, self.n_neighbors)
+            self.embedding_ = self.embedding_ @ self.metric_map_
+            self.model_.embedding_ = self.embedding_     # sklearn's out-of-sample transform combines these rows
         self.n_samples_seen_ = len(X)
         return self
 
@@ -88,6 +106,26 @@ class ImageEmbedding:
 
     def fit_transform(self, X: np.ndarray) -> np.ndarray:
         return self.fit(X).embedding_.copy()
+
+
+def neighbour_metric_map(Z: np.ndarray, Y: np.ndarray, n_neighbors: int) -> np.ndarray:
+    """(m, m) symmetric map B such that |(y_i - y_j) B|^2 best matches |z_i - z_j|^2 (least squares) over each
+    point's n_neighbors nearest inputs: the metric G = B B^T is linear in its m (m + 1) / 2 entries; negative
+    eigenvalues (none on any fit seen) are floored."""
+    from sklearn.neighbors import NearestNeighbors
+    nb = NearestNeighbors(n_neighbors=n_neighbors + 1).fit(Z).kneighbors(Z, return_distance=False)[:, 1:]
+    i, j = np.repeat(np.arange(len(Z)), nb.shape[1]), nb.ravel()
+    dY, dz2 = Y[i] - Y[j], ((Z[i] - Z[j]) ** 2).sum(axis=1)
+    m = Y.shape[1]
+    rows, cols = np.triu_indices(m)
+    F = dY[:, rows] * dY[:, cols] * np.where(rows == cols, 1.0, 2.0)
+    g = np.linalg.lstsq(F, dz2, rcond=None)[0]
+    G = np.zeros((m, m))
+    G[rows, cols] = g
+    G[cols, rows] = g
+    w, V = np.linalg.eigh(G)
+    w = np.maximum(w, 1e-12 * max(float(w.max()), 1e-300))
+    return (V * np.sqrt(w)) @ V.T
 
 
 def confusion(predicted: Sequence[bool], actual: Sequence[bool]) -> Dict[str, float]:

@@ -29,6 +29,27 @@ def test_out_of_sample_transform_of_training_vectors_lands_near_their_embedding(
     assert np.median(np.linalg.norm(emb.transform(Xn) - emb.embedding_, axis=1)) < 0.1 * spread
 
 
+def test_local_lle_metric_keeps_a_disc_round_where_unit_coordinates_squeeze_it():
+    """A 2-D input three times wider than high: LLE's unit-covariance coordinates squeeze the wide direction, so a
+    disc of the input comes out as an ellipse; lle_metric='local' scales the coordinates back to the input's
+    neighbour distances and the disc stays round (out of sample too)."""
+    rng = np.random.default_rng(0)
+    X = rng.uniform([-3.0, -1.0], [3.0, 1.0], (1200, 2))
+    disc = np.linalg.norm(X, axis=1) < 0.5
+
+    def aspect(Y):
+        w = np.linalg.eigvalsh(np.cov((Y[disc] - Y[disc].mean(0)).T))
+        return float(np.sqrt(w[1] / w[0]))
+    unit = ImageEmbedding(2, 10, 'lle', lle_method='standard', scaling='standard').fit(X)
+    local = ImageEmbedding(2, 10, 'lle', lle_method='standard', scaling='standard', lle_metric='local').fit(X)
+    assert aspect(unit.embedding_) > 2.0
+    assert aspect(local.embedding_) < 1.3
+    np.testing.assert_allclose(np.eye(2), unit.metric_map_)
+    np.testing.assert_allclose(local.transform(X[:50]), local.embedding_[:50], atol=0.05 * local.embedding_.std())
+    with pytest.raises(ValueError, match='lle_metric'):
+        ImageEmbedding(2, 10, 'lle', lle_metric='whitened')
+
+
 def test_embedding_rejects_nan_and_wrong_width():
     emb = ImageEmbedding(n_components=2, n_neighbors=8)
     with pytest.raises(ValueError):

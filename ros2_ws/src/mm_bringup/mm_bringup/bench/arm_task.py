@@ -51,7 +51,8 @@ NAME = 'arm_task'
 SCENE_SEED, TRAIN_SEED, TEST_SEED, PLACEMENT_SEED = 0, 1, 2, 3       # benchmark only; tune_arm uses others
 PLACEMENTS = 40
 # Learner settings chosen by mm_bringup.tune_arm (results/tune_arm.json) on scenes and seeds disjoint from the above.
-LEARNER_PARAMS = dict(representation='contact_point', lle_method='standard', n_components=2, object_labels=1)
+LEARNER_PARAMS = dict(representation='contact_point', lle_method='standard', n_components=2, object_labels=1,
+                      lle_metric='local')
 # The kept model that plans before moving: chosen separately by tune_arm's 'map' stage (DP success on its own scene),
 # where the contact-point vector planned worse than the relative one; the image_embedding node's defaults agree.
 PLAN_PARAMS = dict(representation='relative', lle_method='standard', n_components=4)
