@@ -589,9 +589,9 @@ class ArmStateLearner:
         """Object estimate for frames P (n, L, 2) taken in this order: (centres (n, 2), source (n,) index into
         OBJECT_SOURCES). Where two of the object's labels agree, the frame places it ('frame'). Else the newest such
         estimate of the `recent_frames` before it stands in ('recent'): with object_labels=1 it comes before the
-        frame's own single label, which a hand over the object often takes for one of its own keypoints (on a
-        tuning scene 29 of 135 touch frames placed the object > 15 px off that way, against 1 of 77 where two
-        labels agreed). Then the single label ('frame'), the newest estimate of any kind ('recent' within
+        frame's own single label, which a hand over the object often takes for one of its own keypoints (on scene
+        21, not a benchmark scene, 29 of 135 touch frames placed the object > 15 px off that way, against 1 of 77
+        where two labels agreed). Then the single label ('frame'), the newest estimate of any kind ('recent' within
         `recent_frames`, else 'stale') and the training mean ('mean')."""
         agreed = self._object_centres(P)[:, self.contact_object_]
         single = np.full_like(agreed, np.nan)

@@ -32,7 +32,7 @@ def test_out_of_sample_transform_of_training_vectors_lands_near_their_embedding(
 def test_local_lle_metric_keeps_a_disc_round_where_unit_coordinates_squeeze_it():
     """A 2-D input three times wider than high: LLE's unit-covariance coordinates squeeze the wide direction, so a
     disc of the input comes out as an ellipse; lle_metric='local' scales the coordinates back to the input's
-    neighbour distances and the disc stays round (out of sample too)."""
+    neighbour distances and the disc stays round; transform gives the scaled coordinates too."""
     rng = np.random.default_rng(0)
     X = rng.uniform([-3.0, -1.0], [3.0, 1.0], (1200, 2))
     disc = np.linalg.norm(X, axis=1) < 0.5
@@ -40,8 +40,8 @@ def test_local_lle_metric_keeps_a_disc_round_where_unit_coordinates_squeeze_it()
     def aspect(Y):
         w = np.linalg.eigvalsh(np.cov((Y[disc] - Y[disc].mean(0)).T))
         return float(np.sqrt(w[1] / w[0]))
-    unit = ImageEmbedding(2, 10, 'lle', lle_method='standard', scaling='standard').fit(X)
-    local = ImageEmbedding(2, 10, 'lle', lle_method='standard', scaling='standard', lle_metric='local').fit(X)
+    unit = ImageEmbedding(2, 10, 'lle', lle_method='standard').fit(X)
+    local = ImageEmbedding(2, 10, 'lle', lle_method='standard', lle_metric='local').fit(X)
     assert aspect(unit.embedding_) > 2.0
     assert aspect(local.embedding_) < 1.3
     np.testing.assert_allclose(np.eye(2), unit.metric_map_)
