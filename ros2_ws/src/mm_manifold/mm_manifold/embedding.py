@@ -92,7 +92,9 @@ class ImageEmbedding:
         self.embedding_ = self.model_.fit_transform(Z)
         self.metric_map_ = np.eye(self.n_components)
         if self.method == 'lle' and self.lle_metric == 'local':
-            self.metric_map_ = neighbour_metric_map(Z, self.embedding_, self.n_neighbors)
+            # LLE's own neighbour search, reused (this fit runs for every fold and n_neighbors of the selection)
+            neighbours = self.model_.nbrs_.kneighbors(Z, self.n_neighbors + 1, return_distance=False)[:, 1:]
+            self.metric_map_ = neighbour_metric_map(Z, self.embedding_, neighbours)
             self.embedding_ = self.embedding_ @ self.metric_map_
             self.model_.embedding_ = self.embedding_     # sklearn's out-of-sample transform combines these rows
         self.n_samples_seen_ = len(X)
@@ -108,13 +110,11 @@ class ImageEmbedding:
         return self.fit(X).embedding_.copy()
 
 
-def neighbour_metric_map(Z: np.ndarray, Y: np.ndarray, n_neighbors: int) -> np.ndarray:
+def neighbour_metric_map(Z: np.ndarray, Y: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
     """(m, m) symmetric map B such that |(y_i - y_j) B|^2 best matches |z_i - z_j|^2 (least squares) over each
-    point's n_neighbors nearest inputs: the metric G = B B^T is linear in its m (m + 1) / 2 entries; negative
-    eigenvalues (none on any fit seen) are floored."""
-    from sklearn.neighbors import NearestNeighbors
-    nb = NearestNeighbors(n_neighbors=n_neighbors + 1).fit(Z).kneighbors(Z, return_distance=False)[:, 1:]
-    i, j = np.repeat(np.arange(len(Z)), nb.shape[1]), nb.ravel()
+    point i and its `neighbours` (n, k) indices j: the metric G = B B^T is linear in its m (m + 1) / 2 entries;
+    negative eigenvalues (none on any fit seen) are floored."""
+    i, j = np.repeat(np.arange(len(Z)), neighbours.shape[1]), neighbours.ravel()
     dY, dz2 = Y[i] - Y[j], ((Z[i] - Z[j]) ** 2).sum(axis=1)
     m = Y.shape[1]
     rows, cols = np.triu_indices(m)
