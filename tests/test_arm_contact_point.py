@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mm_bringup.arm_evaluation import moving_object_exploration, render_keypoints
-from mm_manifold.arm_learning import OBJECT_SOURCES, ArmStateLearner, ModelFileError
+from mm_manifold.arm_learning import OBJECT_SOURCES, ArmStateLearner, ModelFileError, fit_contact_disc
 from mm_manifold.keypoints import KeypointExtractor
 from mm_sim.arm_model import ArmModel
 
@@ -81,24 +81,34 @@ def test_a_frame_that_hides_the_object_falls_back_to_earlier_estimates(scene):
     np.testing.assert_array_equal(m1['collision'], m2['collision'])
 
 
-def test_an_agreed_recent_estimate_comes_before_a_frames_single_label(scene):
-    """object_labels=1: a lone object label is often a hand keypoint taken for the object's, so the newest estimate
-    on which two labels agreed (within recent_frames) comes first; after that the lone label places the object."""
-    _, _, learner, _ = scene
+def test_the_object_track_follows_lone_labels_and_ignores_those_on_the_hand(scene):
+    """object_labels=1: a lone object label within track_gate of the estimate confirms it; one farther away means
+    the object was re-placed; a label where the joint regression puts one of the robot's labels is left out (SIFT
+    there mostly matched the hand), unless the frame's joints are unknown."""
+    _, data, learner, _ = scene
     labels = np.flatnonzero(learner.object_group_ == learner.contact_object_)
     assert len(labels) >= 2
-    template = learner.object_template_[labels]
-    n = learner.recent_frames + 3
-    P = np.full((n, learner.vectorizer_.n_labels_, 2), np.nan)
+    template, centre = learner.object_template_[labels], learner.object_template_[labels].mean(axis=0)
+    small = np.array([0.5, -0.5]) * learner.track_gate
+    P = np.full((5, learner.vectorizer_.n_labels_, 2), np.nan)
     P[0, labels] = template + [30.0, 10.0]                   # all the object's labels: agreed
-    P[1:, labels[0]] = template[0] + [80.0, -40.0]           # afterwards one label only, somewhere else
+    P[1, labels[0]] = template[0] + [30.0, 10.0] + small     # one label, near the estimate: confirms it
+    P[2, labels[1]] = template[1] + [90.0, -40.0]            # one label, far away: the object was re-placed
+    P[3, labels[:2]] = template[:2] + [[88.0, -40.0], [92.0, -40.0]]   # two labels 4 px apart: within the gate
     centres, sources = learner._object_track(P)
-    agreed, lone = template.mean(axis=0) + [30.0, 10.0], template.mean(axis=0) + [80.0, -40.0]
-    k = learner.recent_frames + 1
-    np.testing.assert_allclose(centres[:k], np.repeat(agreed[None], k, axis=0))
-    assert sources[:k].tolist() == [0] + [1] * learner.recent_frames
-    np.testing.assert_allclose(centres[k:], np.repeat(lone[None], 2, axis=0))
-    assert sources[k:].tolist() == [0, 0]
+    np.testing.assert_allclose(centres[:2], np.repeat(centre[None] + [30.0, 10.0], 2, axis=0))
+    np.testing.assert_allclose(centres[2:], np.repeat(centre[None] + [90.0, -40.0], 3, axis=0))
+    assert sources.tolist() == [0, 0, 0, 0, 1]
+    # the far label of frame 2 placed on the hand: left out when the joints are known
+    q = np.repeat(data['joints'][:1], 5, axis=0)
+    hand = learner._robot_points(q[:1])[0, 0]
+    P[2, labels[1]] = hand
+    P[3] = np.nan
+    moved = learner._object_track(P)[0]
+    np.testing.assert_allclose(moved[2], hand - template[1] + centre)
+    kept, kept_sources = learner._object_track(P, q)
+    np.testing.assert_allclose(kept[2:], np.repeat(centre[None] + [30.0, 10.0], 3, axis=0))
+    assert kept_sources.tolist() == [0, 0, 1, 1, 1]
 
 
 def test_contact_point_needs_the_joint_readings_and_two_dimensions(scene):
@@ -112,6 +122,9 @@ def test_contact_point_needs_the_joint_readings_and_two_dimensions(scene):
         ArmStateLearner(model.joint_limits, representation='contact_point', n_components=3)
     with pytest.raises(ValueError):
         ArmStateLearner(model.joint_limits, object_labels=3)
+    for bad in (dict(hand_exclusion=-1.0), dict(track_gate=0.0), dict(hand_exclusion=float('nan'))):
+        with pytest.raises(ValueError):
+            ArmStateLearner(model.joint_limits, **bad)
 
 
 def test_save_load_round_trip(scene, tmp_path):
@@ -143,3 +156,23 @@ def test_save_load_round_trip(scene, tmp_path):
         np.savez(tmp_path / 'bad.npz', **{**arrays, **case})
         with pytest.raises(ModelFileError):
             ArmStateLearner.load(tmp_path / 'bad.npz')
+
+
+def test_contact_disc_fit_ignores_touch_frames_whose_object_estimate_is_wrong():
+    """Touch frames whose object was placed 80-120 px off (a wrong estimate) would widen the disc; the fit refits
+    without the touch frames far outside it and finds the true contact point and radius."""
+    rng = np.random.default_rng(3)
+    n, radius, c, e = 1500, 38.0, np.array([0.9, 0.1]), np.array([4.0, -6.0])
+    angle, length = rng.uniform(-np.pi, np.pi, n), rng.uniform(40.0, 60.0, n)
+    u = length[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    M = np.stack([u, np.stack([-u[:, 1], u[:, 0]], axis=1)], axis=2)           # the link frame [B - A, perp]
+    d = rng.uniform(-90.0, 90.0, (n, 2))                                         # true p - o - e
+    rel = d - np.einsum('nij,j->ni', M, c) + e
+    contact = np.linalg.norm(d, axis=1) < radius
+    wrong = rng.choice(np.flatnonzero(contact), 8, replace=False)
+    shift = rng.uniform(80.0, 120.0, 8)[:, None] * np.stack([np.cos(angle[wrong]), np.sin(angle[wrong])], axis=1)
+    rel[wrong] += shift
+    theta = fit_contact_disc(rel, M, contact, np.ones(n, bool))
+    assert abs(theta[4] - radius) < 1.5, theta
+    np.testing.assert_allclose(theta[:2], c, atol=0.05)
+    np.testing.assert_allclose(theta[2:4], e, atol=3.0)

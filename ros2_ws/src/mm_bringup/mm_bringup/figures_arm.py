@@ -199,7 +199,30 @@ def tables(out: Path, bench_json: Path) -> None:
             ['```', format_confusion(k), '```', '']
     text += ['Paper (real images): LLE 95/115 (82.6 %) collisions recognised, 111/617 (18.0 %) false alarms; '
              'PCA 63/115 (54.8 %), 132/617 (21.4 %).', '']
+    if b.get('scenes_rows'):
+        text += held_out_scene_table(b)
     (out / 'tables_arm.md').write_text('\n'.join(text))
+
+
+def held_out_scene_table(b: dict) -> list:
+    """Markdown lines: the main rows on every held-out scene (TPR / FPR) and the scenes meeting the targets."""
+    rows = ('lle_sphere', 'lle_best', 'pca_sphere', 'pca_best', 'raw_sphere')
+    text = ['## The same rows on held-out scenes', '',
+            'Same placements and frames, other backgrounds, object textures and arm looks (scenes no tuning script '
+            'or test uses). TPR / FPR per scene:', '',
+            '| scene | ' + ' | '.join(rows) + ' |', '|---' * (len(rows) + 1) + '|']
+    for r in b['scenes_rows']:
+        cells = [r['error'] if 'error' in r else f"{r[k]['tpr']:.3f} / {r[k]['fpr']:.3f}" for k in rows]
+        text.append(f"| {r['scene']} | " + ' | '.join(cells if 'error' not in r else cells[:1] + [''] * 4) + ' |')
+    text.append('| mean | ' + ' | '.join(f"{b[f'scenes_{k}']['mean_tpr']:.3f} / {b[f'scenes_{k}']['mean_fpr']:.3f}"
+                                         if f'scenes_{k}' in b else '' for k in rows) + ' |')
+    t = b['scenes_targets']
+    n = len(b['scenes_rows'])
+    text += ['', f"Scenes meeting the targets: LLE sphere (TPR >= {t['sphere'][0]}, FPR <= {t['sphere'][1]}) "
+             f"{b['scenes_lle_sphere_meeting_target']} of {n}, PCA sphere {b['scenes_pca_sphere_meeting_target']}; "
+             f"best boundary (>= {t['best'][0]}, <= {t['best'][1]}) LLE {b['scenes_lle_best_meeting_target']} of "
+             f"{n}, PCA {b['scenes_pca_best_meeting_target']}.", '']
+    return text
 
 
 def main(argv=None) -> int:

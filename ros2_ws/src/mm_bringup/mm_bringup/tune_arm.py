@@ -13,7 +13,13 @@ Stage 'map': for each vector in PLAN_CANDIDATES (bench.arm_task's PLAN_PARAMS an
 on the same training frames with the hand's touch and with a whole-arm touch plan before moving on MAP_PLACEMENTS
 placements of generator MAP_SEED, for every candidate map_threshold; the vector with the best whole-arm DP success
 becomes bench.arm_task.PLAN_PARAMS and, for it, the threshold with the best mean DP success (paper's rewards; ties:
-map accuracy) ArmStateLearner's default map_threshold, both by hand. The JSON records every row and the seeds.
+map accuracy) ArmStateLearner's default map_threshold, both by hand. Stage 'track': the contact-point vector's
+sequential object estimate (ArmStateLearner._object_track) on TRACK_SCENES (generators TRACK_TRAIN_SEED /
+TRACK_TEST_SEED): one learner (bench.arm_task.LEARNER_PARAMS) per scene, then for every TRACK_GRID combination the
+share of held-out frames whose estimate lies more than TRACK_ERROR_PX from the true object (ground truth, for
+scoring only; the learned centre's constant offset from it is the median over the training frames whose object
+labels agree); the combination with the smallest mean share becomes ArmStateLearner's defaults by hand. The JSON
+records every row and the seeds.
 """
 from __future__ import annotations
 
@@ -34,6 +40,9 @@ GRID = (dict(representation=('absolute', 'relative'), lle_method=('standard', 'm
              object_labels=(1, 2), lle_metric=('unit', 'local')))
 MAP_THRESHOLDS = (0.0, 0.25, 0.5, 0.75, 1.0)
 MAP_PLACEMENTS = 20
+TRACK_SCENES, TRACK_TRAIN_SEED, TRACK_TEST_SEED = tuple(range(21, 33)), 101, 102
+TRACK_GRID = dict(hand_exclusion=(0.0, 10.0, 15.0, 20.0, 25.0, 30.0), track_gate=(8.0, 15.0, 25.0))
+TRACK_ERROR_PX = 8.0
 
 
 def tune_map(n_train: int, extractor) -> dict:
@@ -68,23 +77,71 @@ def tune_map(n_train: int, extractor) -> dict:
                 best_plan_params=best_params, best_map_threshold=max(MAP_THRESHOLDS, key=lambda t: score[t]))
 
 
+def tune_track(n_train: int, n_test: int, extractor) -> dict:
+    """Stage 'track' (module docstring)."""
+    import numpy as np
+    from mm_bringup.arm_evaluation import moving_object_exploration, render_keypoints
+    from mm_bringup.bench.arm_task import LEARNER_PARAMS
+    from mm_manifold.arm_learning import ArmStateLearner
+    from mm_sim.arm_model import ArmModel
+    combos = [dict(zip(TRACK_GRID, v)) for v in itertools.product(*TRACK_GRID.values())]
+    shares = {i: [] for i in range(len(combos))}
+    scenes = []
+    for scene in TRACK_SCENES:
+        model = ArmModel(random_state=scene)
+        train = moving_object_exploration(model, n_train, rng=np.random.default_rng(TRACK_TRAIN_SEED))
+        test = moving_object_exploration(model, n_test, rng=np.random.default_rng(TRACK_TEST_SEED))
+        kps_train = render_keypoints(model, train['joints'], train['object'], extractor)
+        kps_test = render_keypoints(model, test['joints'], test['object'], extractor)
+        try:
+            learner = ArmStateLearner(model.joint_limits, **LEARNER_PARAMS).fit(kps_train, train['joints'],
+                                                                                train['contact'])
+        except ValueError as exc:            # no object learned: nothing to track on this scene
+            scenes.append(dict(scene=scene, error=str(exc)))
+            continue
+        raw = learner.vectorizer_.training_vectors_
+        agreed = learner._object_centres(raw.reshape(len(raw), -1, 2))[:, learner.contact_object_]
+        ok = np.isfinite(agreed[:, 0])
+        offset = np.median(agreed[ok] - train['object'][ok], axis=0)
+        row = dict(scene=scene, share={})
+        for i, combo in enumerate(combos):
+            learner.hand_exclusion, learner.track_gate = combo['hand_exclusion'], combo['track_gate']
+            est = learner.object_track(kps_test, test['joints'])[0]
+            share = float(np.mean(np.linalg.norm(est - offset - test['object'], axis=1) > TRACK_ERROR_PX))
+            shares[i].append(share)
+            row['share'][json.dumps(combo)] = share
+        scenes.append(row)
+        print(json.dumps(row), flush=True)
+    rows = [dict(params=c, mean_share=float(np.mean(shares[i]))) for i, c in enumerate(combos)]
+    best = min(rows, key=lambda r: r['mean_share'])
+    return dict(track=dict(scenes=list(TRACK_SCENES), train_seed=TRACK_TRAIN_SEED, test_seed=TRACK_TEST_SEED,
+                           error_px=TRACK_ERROR_PX, grid={k: list(v) for k, v in TRACK_GRID.items()},
+                           per_scene=scenes, rows=rows, best=best))
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--output', default='results/tune_arm.json')
     parser.add_argument('--n-train', type=int, default=1000)
     parser.add_argument('--n-test', type=int, default=300)
-    parser.add_argument('--stages', nargs='+', default=['embedding', 'map'], choices=['embedding', 'map'])
+    parser.add_argument('--stages', nargs='+', default=['track', 'embedding', 'map'],
+                        choices=['track', 'embedding', 'map'])
     args = parser.parse_args(argv)
     extractor = KeypointExtractor()
     path = Path(args.output)
     out = json.loads(path.read_text()) if path.is_file() else {}
     out.update(seeds=dict(scene=SCENE_SEED, embedding_scenes=list(SCENE_SEEDS), train=TRAIN_SEED, test=TEST_SEED,
                           map=MAP_SEED), n_train=args.n_train, n_test=args.n_test)
-    if 'map' in args.stages and 'embedding' not in args.stages:
-        out.update(tune_map(args.n_train, extractor))
+    if 'track' in args.stages:
+        out.update(tune_track(args.n_train, args.n_test, extractor))
         _write(path, out)
-        print(f"[tune_arm] planning with {out['best_plan_params']}, best map_threshold {out['best_map_threshold']}; "
-              f"wrote {path}")
+        print(f"[tune_arm] object track: {out['track']['best']}")
+    if 'embedding' not in args.stages:
+        if 'map' in args.stages:
+            out.update(tune_map(args.n_train, extractor))
+            _write(path, out)
+            print(f"[tune_arm] planning with {out['best_plan_params']}, best map_threshold {out['best_map_threshold']}; "
+                  f"wrote {path}")
         return 0
     rows = []
     combos = [dict(zip(sub, values)) for sub in GRID for values in itertools.product(*sub.values())]

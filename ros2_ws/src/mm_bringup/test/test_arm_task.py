@@ -63,3 +63,19 @@ def test_geometry_row_is_scored_by_the_named_learner():
     row = out['geometry']
     assert row['vector'] == 'relative' and row['tp'] + row['fn'] + row['fp'] + row['tn'] == 40
     assert out['representation'] == 'contact_point' and out['relative_params']['representation'] == 'relative'
+
+
+def test_held_out_scenes_summarise_every_scene():
+    """Every scene gets a row (one that cannot be fitted: its error), and the summary matches the rows."""
+    from mm_bringup.bench.arm_task import BEST_TARGET, SCENE_ROWS, SPHERE_TARGET, held_out_scenes
+    out = held_out_scenes((5, 6), 200, 60, KeypointExtractor())
+    assert out['scenes'] == [5, 6] and len(out['scenes_rows']) == 2
+    fitted = [r for r in out['scenes_rows'] if 'error' not in r]
+    assert out['scenes_failed_to_fit'] == 2 - len(fitted) and fitted
+    for key in SCENE_ROWS:
+        tpr = [r[key]['tpr'] for r in fitted]
+        assert out[f'scenes_{key}']['min_tpr'] == min(tpr)
+        assert out[f'scenes_{key}']['mean_tpr'] == pytest.approx(np.mean(tpr))
+    for key, (tpr, fpr) in (('lle_sphere', SPHERE_TARGET), ('lle_best', BEST_TARGET)):
+        assert out[f'scenes_{key}_meeting_target'] == sum(r[key]['tpr'] >= tpr and r[key]['fpr'] <= fpr
+                                                          for r in fitted)
