@@ -25,7 +25,7 @@ import numpy as np  # noqa: E402
 from scipy.stats import spearmanr  # noqa: E402
 
 from mm_bringup.bench.arm_task import (COMPARE_PARAMS, LEARNER_PARAMS, PLACEMENT_SEED, PLAN_PARAMS,  # noqa: E402
-                                       SCENE_SEED, TEST_SEED, TRAIN_SEED, choose_task, execute_plan,
+                                       SCENE_ROWS, SCENE_SEED, TEST_SEED, TRAIN_SEED, choose_task, execute_plan,
                                        truth_move_maps)
 from mm_bringup.arm_evaluation import evaluate_collision_prediction  # noqa: E402
 from mm_manifold.arm_learning import ArmStateLearner  # noqa: E402
@@ -206,14 +206,15 @@ def tables(out: Path, bench_json: Path) -> None:
 
 def held_out_scene_table(b: dict) -> list:
     """Markdown lines: the main rows on every held-out scene (TPR / FPR) and the scenes meeting the targets."""
-    rows = ('lle_sphere', 'lle_best', 'pca_sphere', 'pca_best', 'raw_sphere')
+    rows = SCENE_ROWS
     text = ['## The same rows on held-out scenes', '',
             'Same placements and frames, other backgrounds, object textures and arm looks (scenes no tuning script '
             'or test uses). TPR / FPR per scene:', '',
             '| scene | ' + ' | '.join(rows) + ' |', '|---' * (len(rows) + 1) + '|']
     for r in b['scenes_rows']:
-        cells = [r['error'] if 'error' in r else f"{r[k]['tpr']:.3f} / {r[k]['fpr']:.3f}" for k in rows]
-        text.append(f"| {r['scene']} | " + ' | '.join(cells if 'error' not in r else cells[:1] + [''] * 4) + ' |')
+        cells = ([r['error']] + [''] * (len(rows) - 1) if 'error' in r else
+                 [f"{r[k]['tpr']:.3f} / {r[k]['fpr']:.3f}" for k in rows])
+        text.append(f"| {r['scene']} | " + ' | '.join(cells) + ' |')
     text.append('| mean | ' + ' | '.join(f"{b[f'scenes_{k}']['mean_tpr']:.3f} / {b[f'scenes_{k}']['mean_fpr']:.3f}"
                                          if f'scenes_{k}' in b else '' for k in rows) + ' |')
     t = b['scenes_targets']
