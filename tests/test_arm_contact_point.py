@@ -1,12 +1,14 @@
 """ArmStateLearner(representation='contact_point'): a virtual contact point rigid with the last link, relative to the
 learned object (mm_manifold.arm_learning module docstring)."""
+import copy
 import dataclasses
 
 import numpy as np
 import pytest
 
 from mm_bringup.arm_evaluation import moving_object_exploration, render_keypoints
-from mm_manifold.arm_learning import OBJECT_SOURCES, ArmStateLearner, ModelFileError, fit_contact_disc
+from mm_manifold.arm_learning import (OBJECT_SOURCES, ArmStateLearner, ModelFileError, fit_contact_disc,
+                                      fit_template, label_modes)
 from mm_manifold.keypoints import KeypointExtractor
 from mm_sim.arm_model import ArmModel
 
@@ -88,7 +90,8 @@ def test_the_object_track_follows_lone_labels_and_ignores_those_on_the_hand(scen
     _, data, learner, _ = scene
     labels = np.flatnonzero(learner.object_group_ == learner.contact_object_)
     assert len(labels) >= 2
-    template, centre = learner.object_template_[labels], learner.object_template_[labels].mean(axis=0)
+    template = learner.object_modes_[:, 0]                   # each label's main offset
+    centre = template.mean(axis=0)
     small = np.array([0.5, -0.5]) * learner.track_gate
     P = np.full((5, learner.vectorizer_.n_labels_, 2), np.nan)
     P[0, labels] = template + [30.0, 10.0]                   # all the object's labels: agreed
@@ -111,6 +114,43 @@ def test_the_object_track_follows_lone_labels_and_ignores_those_on_the_hand(scen
     assert kept_sources.tolist() == [0, 0, 1, 1, 1]
 
 
+def test_label_modes_finds_each_keypoint_a_label_stands_for():
+    """A label that stands for two keypoints of the object (look-alikes in one track) gets both offsets, the
+    frequent one first; labels of one keypoint get one."""
+    rng = np.random.default_rng(5)
+    n, offsets, other = 400, np.array([[0.0, 0.0], [20.0, 0.0], [0.0, 20.0], [20.0, 20.0]]), np.array([-25.0, 10.0])
+    shift = rng.uniform(-100.0, 100.0, (n, 1, 2))
+    P = shift + offsets[None] + rng.normal(0.0, 0.5, (n, 4, 2))
+    second = rng.random(n) < 0.3
+    P[second, 0] = shift[second, 0] + other
+    P[rng.random((n, 4)) < 0.2] = np.nan
+    modes = label_modes(P, fit_template(P), 3.0)
+    np.testing.assert_allclose(modes[0, 1] - modes[0, 0], other - offsets[0], atol=1.0)
+    np.testing.assert_allclose(modes[1:, 0] - modes[1, 0], offsets[1:] - offsets[1], atol=1.0)
+    assert np.isnan(modes[1:, 1:]).all() and np.isnan(modes[0, 2]).all()
+
+
+def test_the_object_track_places_the_object_from_either_keypoint_of_a_label(scene):
+    """With object_modes 2 a frame whose label shows its second keypoint still agrees with another label; with one
+    offset per label the two disagree and the frame is placed wrongly."""
+    _, _, fitted, _ = scene
+    learner = copy.deepcopy(fitted)
+    labels = np.flatnonzero(learner.object_group_ == learner.contact_object_)
+    learner.object_modes_ = np.full_like(learner.object_modes_, np.nan)
+    learner.object_modes_[:, 0] = fitted.object_modes_[:, 0]
+    learner.object_modes_[0, 1] = fitted.object_modes_[0, 0] + [-25.0, 10.0]
+    main = learner.object_modes_[:, 0]
+    P = np.full((1, learner.vectorizer_.n_labels_, 2), np.nan)
+    P[0, labels[0]] = learner.object_modes_[0, 1] + [60.0, 40.0]
+    P[0, labels[1]] = main[1] + [60.0, 40.0]
+    learner.object_modes = 2
+    centres, sources = learner._object_track(P)
+    np.testing.assert_allclose(centres[0], main.mean(axis=0) + [60.0, 40.0])
+    assert sources.tolist() == [0]
+    learner.object_modes = 1
+    assert np.linalg.norm(learner._object_track(P)[0][0] - main.mean(axis=0) - [60.0, 40.0]) > 10.0
+
+
 def test_contact_point_needs_the_joint_readings_and_two_dimensions(scene):
     model, data, learner, ext = scene
     frame = ext(model.render(data['joints'][0]))
@@ -122,7 +162,8 @@ def test_contact_point_needs_the_joint_readings_and_two_dimensions(scene):
         ArmStateLearner(model.joint_limits, representation='contact_point', n_components=3)
     with pytest.raises(ValueError):
         ArmStateLearner(model.joint_limits, object_labels=3)
-    for bad in (dict(hand_exclusion=-1.0), dict(track_gate=0.0), dict(hand_exclusion=float('nan'))):
+    for bad in (dict(hand_exclusion=-1.0), dict(track_gate=0.0), dict(hand_exclusion=float('nan')),
+                dict(object_modes=0), dict(object_modes=4)):
         with pytest.raises(ValueError):
             ArmStateLearner(model.joint_limits, **bad)
 
@@ -133,7 +174,8 @@ def test_save_load_round_trip(scene, tmp_path):
     learner.save(path)
     loaded = ArmStateLearner.load(path)
     assert loaded.get_params() == learner.get_params()
-    for name in ('contact_labels_', 'contact_coef_', 'contact_offset_', 'object_mean_', 'train_object_source_'):
+    for name in ('contact_labels_', 'contact_coef_', 'contact_offset_', 'object_mean_', 'object_modes_',
+                 'train_object_source_'):
         np.testing.assert_array_equal(getattr(loaded, name), getattr(learner, name))
     assert loaded.contact_radius_ == learner.contact_radius_ and loaded.contact_object_ == learner.contact_object_
     for q in data['joints'][:4]:
@@ -152,6 +194,8 @@ def test_save_load_round_trip(scene, tmp_path):
     np.testing.assert_array_equal(loaded.lle_.metric_map_, learner.lle_.metric_map_)
     for case in (dict(contact_labels=np.zeros(0, int)), dict(contact_params=bad_radius),
                  dict(contact_params=nan_coef), dict(train_object_source=np.full(3, 7)),
+                 dict(object_modes=arrays['object_modes'][:1]),
+                 dict(object_modes=np.full_like(arrays['object_modes'], np.nan)),
                  dict(lle_metric_map=np.full((2, 2), np.nan)), dict(lle_metric_map=np.eye(3))):
         np.savez(tmp_path / 'bad.npz', **{**arrays, **case})
         with pytest.raises(ModelFileError):

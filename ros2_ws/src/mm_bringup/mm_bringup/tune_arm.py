@@ -17,8 +17,8 @@ map accuracy) ArmStateLearner's default map_threshold, both by hand. Stage 'trac
 sequential object estimate (ArmStateLearner._object_track) on TRACK_SCENES (generators TRACK_TRAIN_SEED /
 TRACK_TEST_SEED): one learner (bench.arm_task.LEARNER_PARAMS) per scene, then for every TRACK_GRID combination the
 share of held-out frames whose estimate lies more than TRACK_ERROR_PX from the true object (ground truth, for
-scoring only; the learned centre's constant offset from it is the median over the training frames whose object
-labels agree); the combination with the smallest mean share becomes ArmStateLearner's defaults by hand. The JSON
+scoring only; the learned centre's constant offset from it is the median over the training frames that the same
+combination's track places by the frame itself); the combination with the smallest mean share becomes ArmStateLearner's defaults by hand. The JSON
 records every row and the seeds.
 """
 from __future__ import annotations
@@ -41,7 +41,8 @@ GRID = (dict(representation=('absolute', 'relative'), lle_method=('standard', 'm
 MAP_THRESHOLDS = (0.0, 0.25, 0.5, 0.75, 1.0)
 MAP_PLACEMENTS = 20
 TRACK_SCENES, TRACK_TRAIN_SEED, TRACK_TEST_SEED = tuple(range(21, 33)), 101, 102
-TRACK_GRID = dict(hand_exclusion=(0.0, 10.0, 15.0, 20.0, 25.0, 30.0), track_gate=(8.0, 15.0, 25.0))
+TRACK_GRID = dict(hand_exclusion=(0.0, 10.0, 15.0, 20.0, 25.0, 30.0), track_gate=(8.0, 15.0, 25.0),
+                  object_modes=(1, 2, 3))
 TRACK_ERROR_PX = 8.0
 
 
@@ -99,14 +100,15 @@ def tune_track(n_train: int, n_test: int, extractor) -> dict:
         except ValueError as exc:            # no object learned: nothing to track on this scene
             scenes.append(dict(scene=scene, error=str(exc)))
             continue
-        raw = learner.vectorizer_.training_vectors_
-        agreed = learner._object_centres(raw.reshape(len(raw), -1, 2))[:, learner.contact_object_]
-        ok = np.isfinite(agreed[:, 0])
-        offset = np.median(agreed[ok] - train['object'][ok], axis=0)
+        P_train = learner.vectorizer_.training_vectors_.reshape(n_train, -1, 2)
+        P_test = learner.vectorizer_.transform(kps_test).reshape(len(kps_test), -1, 2)
         row = dict(scene=scene, share={})
         for i, combo in enumerate(combos):
-            learner.hand_exclusion, learner.track_gate = combo['hand_exclusion'], combo['track_gate']
-            est = learner.object_track(kps_test, test['joints'])[0]
+            for name, value in combo.items():        # track-time settings: no refit needed
+                setattr(learner, name, value)
+            agreed, source = learner._object_track(P_train, train['joints'])
+            offset = np.median(agreed[source == 0] - train['object'][source == 0], axis=0)
+            est = learner._object_track(P_test, test['joints'])[0]
             share = float(np.mean(np.linalg.norm(est - offset - test['object'], axis=1) > TRACK_ERROR_PX))
             shares[i].append(share)
             row['share'][json.dumps(combo)] = share

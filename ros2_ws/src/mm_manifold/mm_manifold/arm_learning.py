@@ -34,7 +34,8 @@ the `recent_frames` frames before it. 'contact_point' embeds one 2-D offset, d =
 perp(B - A) is a virtual contact point rigid with the last link (A, B: the two farthest-apart precisely placed robot
 labels that move with joint 1 and rigidly with each other, put where the joint regression puts them at the frame's
 joint readings, so never hidden), o the learned object's centre (template shift, tracked over the frames in order:
-labels next to the hand are left out, two agreeing labels place it, a lone label confirms the estimate or - with
+labels next to the hand are left out, two agreeing labels place it (a label may stand for several of the object's
+keypoints, each with its own offset), a lone label confirms the estimate or - with
 `object_labels` 1 - re-places it, a frame without one keeps the last estimate; `_object_track`) and e an image
 offset. (c1, c2, e) come from least squares of ||p - o - e|| over the touch frames, then a class-balanced logistic
 fit of (r - ||d||) / s, refitted without the touch frames it puts more than 2 s outside the disc (their object
@@ -94,7 +95,8 @@ from mm_manifold.embedding import (LLE_METRICS, REGION_MODELS, ContactQuadric, C
                                    fit_contact_model, quadratic_features, select_contact_model)
 from mm_manifold.keypoints import FrameKeypoints, KeypointVectorizer, MeanImputer, NearestImputer
 
-FORMAT_VERSION = 9                 # 9: hand_exclusion, track_gate (the sequential object track)
+FORMAT_VERSION = 10                # 10: object_modes (several template offsets per object label)
+MAX_OBJECT_MODES = 3               # template offsets learned per object label (label_modes)
 REPRESENTATIONS = ('relative', 'absolute', 'contact_point')
 OBJECT_SOURCES = ('frame', 'recent', 'stale', 'mean')   # where the contact-point vector's object estimate came from
 MAP_METHODS = ('keypoint_distance', 'embedding')
@@ -277,6 +279,47 @@ def fit_contact_disc(rel: np.ndarray, M: np.ndarray, contact: np.ndarray, fit: n
     return theta
 
 
+def label_modes(P: np.ndarray, template: np.ndarray, tolerance: float, max_modes: int = 3,
+                min_share: float = 0.1, min_frames: int = 5) -> np.ndarray:
+    """(G, max_modes, 2) offsets of each label of a rigid group from the group's shift, most frequent first, NaN where
+    a label has fewer modes; P (n, G, 2) the labels' positions (NaN unseen), `template` (G, 2) from fit_template.
+    One label may stand for several physical keypoints of the object (SIFT's look-alikes, joined into one track): on
+    diagnosis scene 30 one label's single template offset lay 25 px from every place it was seen, between two of
+    them. A label's offset is measured in the frames where the other labels agree on the shift (within 2 x
+    `tolerance` px; one other label for a group of two), clustered greedily (radius 2 x `tolerance`, the densest
+    first), and a cluster holding at least `min_share` of them and `min_frames` frames is a mode. Done twice, the
+    second time with every label's main mode as its template (a template between two modes misleads the others)."""
+    n, G = P.shape[:2]
+    radius = 2.0 * tolerance
+    modes = np.full((G, max_modes, 2), np.nan)
+    with np.errstate(invalid='ignore'), warnings.catch_warnings():
+        warnings.simplefilter('ignore', RuntimeWarning)
+        for _ in range(2):
+            implied = P - template[None]                                    # (n, G, 2) shift each label implies
+            for j in range(G):
+                others = implied[:, np.arange(G) != j]
+                shift = np.nanmedian(others, axis=1)
+                agree = (np.linalg.norm(others - shift[:, None], axis=2) <= radius).sum(axis=1)
+                ok = (agree >= min(2, G - 1)) & np.isfinite(P[:, j, 0])
+                offsets = P[ok, j] - shift[ok]
+                need = max(min_frames, min_share * len(offsets))
+                free = np.ones(len(offsets), bool)
+                found = []
+                while len(found) < max_modes and free.sum() >= need:
+                    pts = offsets[free]
+                    close = np.linalg.norm(pts[:, None] - pts[None], axis=2) <= radius
+                    members = close[np.argmax(close.sum(axis=1))]
+                    if members.sum() < need:
+                        break
+                    mode = np.median(pts[members], axis=0)
+                    found.append(mode)
+                    free &= np.linalg.norm(offsets - mode, axis=1) > radius
+                modes[j] = np.nan
+                modes[j, :max(len(found), 1)] = found if found else [template[j]]
+            template = modes[:, 0].copy()
+    return modes
+
+
 def group_shifts(P: np.ndarray, template: np.ndarray, tolerance: float) -> np.ndarray:
     """(n, 2) shift of a rigid group in each frame from its labels' positions P (n, G, 2): the median offset from the
     template, kept only where at least two labels agree with it within 2 x `tolerance` px (NaN otherwise: one label
@@ -361,7 +404,8 @@ class ArmStateLearner:
     map_threshold (closeness at or above which predict_collision_map counts a lattice point as contact; chosen by
     mm_bringup.tune_arm), move_clearance [px] (keypoint_distance: the predicted clearance a move between cell centres
     must keep to count as free in blocked_moves; chosen by mm_bringup.tune_arm_reach), lle_metric ('unit' or
-    'local': ImageEmbedding's scaling of the LLE coordinates; 'local' keeps the input's neighbour distances).
+    'local': ImageEmbedding's scaling of the LLE coordinates; 'local' keeps the input's neighbour distances),
+    hand_exclusion, track_gate [px] and object_modes (contact_point's object track: _object_track).
     Learned attributes: vectorizer_, label_roles_, joint_coef_ (joint regression of every label), label_r2_,
     label_motion_, label_mean_ (mean training position of every label), lle_, pca_, region_ and
     pca_region_ (ContactSphere or ContactQuadric), selection_ and pca_selection_ (the cross-validated choice: model, C,
@@ -370,7 +414,8 @@ class ArmStateLearner:
     collision_map_ (rows, cols) bool and closeness_map_ (rows, cols) over the exploration frames; contact_point only
     (None otherwise): contact_labels_ (A, B label ids), contact_coef_ (c1, c2), contact_offset_ (e), contact_radius_
     and contact_softness_ [px] (the logistic fit), contact_object_ (object group used), object_mean_ (training mean
-    of its centre), train_object_source_ (index into OBJECT_SOURCES per training frame).
+    of its centre), object_modes_ (k, MAX_OBJECT_MODES, 2) offsets of the object's labels (label_modes),
+    train_object_source_ (index into OBJECT_SOURCES per training frame).
     """
 
     def __init__(self, joint_limits, n_components: int = 3, n_neighbors: int = 20, lle_method: str = 'standard',
@@ -382,7 +427,7 @@ class ArmStateLearner:
                  map_threshold: float = 0.25, map_method: str = 'embedding', rigid_tolerance: float = 2.0,
                  object_tolerance: float = 3.0, margin_quantile: float = 0.01, unplaced_object: str = 'embedding',
                  move_clearance: float = 3.0, object_labels: int = 2, lle_metric: str = 'unit',
-                 hand_exclusion: float = 15.0, track_gate: float = 15.0):
+                 hand_exclusion: float = 20.0, track_gate: float = 8.0, object_modes: int = 3):
         lim = np.asarray(joint_limits, dtype=float)
         if lim.shape != (2, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
             raise ValueError('joint_limits must be ((lo0, hi0), (lo1, hi1)) with finite lo < hi')
@@ -415,6 +460,8 @@ class ArmStateLearner:
             raise ValueError('object_labels must be 1 or 2')
         if not (0.0 <= hand_exclusion < 100.0 and 0.0 < track_gate < 1000.0):
             raise ValueError('hand_exclusion must be in [0, 100) px and track_gate in (0, 1000) px')
+        if object_modes not in range(1, MAX_OBJECT_MODES + 1):
+            raise ValueError(f'object_modes must be 1 ... {MAX_OBJECT_MODES}')
         if lle_metric not in LLE_METRICS:
             raise ValueError(f'lle_metric must be one of {LLE_METRICS}')
         if representation == 'contact_point' and n_components > 2:
@@ -453,6 +500,7 @@ class ArmStateLearner:
         self.lle_metric = lle_metric
         self.hand_exclusion = float(hand_exclusion)
         self.track_gate = float(track_gate)
+        self.object_modes = int(object_modes)
 
     def get_params(self) -> Dict[str, object]:
         """The constructor's parameters (JSON-able), as saved with the model."""
@@ -466,7 +514,8 @@ class ArmStateLearner:
                     rigid_tolerance=self.rigid_tolerance, object_tolerance=self.object_tolerance,
                     margin_quantile=self.margin_quantile, unplaced_object=self.unplaced_object,
                     move_clearance=self.move_clearance, object_labels=self.object_labels,
-                    lle_metric=self.lle_metric, hand_exclusion=self.hand_exclusion, track_gate=self.track_gate)
+                    lle_metric=self.lle_metric, hand_exclusion=self.hand_exclusion, track_gate=self.track_gate,
+                    object_modes=self.object_modes)
 
     # --- fitting ------------------------------------------------------------------------------------------
     def fit(self, keypoints: Sequence[FrameKeypoints], joints, contact, stamps=None) -> 'ArmStateLearner':
@@ -559,7 +608,7 @@ class ArmStateLearner:
         self.object_frames_ = int(known.sum())
 
     _CONTACT_ATTRS = ('contact_labels_', 'contact_coef_', 'contact_offset_', 'contact_radius_', 'contact_softness_',
-                      'contact_object_', 'object_mean_', 'train_object_source_')
+                      'contact_object_', 'object_mean_', 'object_modes_', 'train_object_source_')
 
     def _fit_contact_point(self, raw: np.ndarray, joints: np.ndarray, contact: np.ndarray) -> None:
         """The contact-point vector's parameters (module docstring), from the training frames only."""
@@ -585,6 +634,9 @@ class ArmStateLearner:
             raise ValueError('contact_point needs two precisely placed robot labels rigid on the last link')
         span = np.median(np.linalg.norm(R0[:, pairs[:, 0]] - R0[:, pairs[:, 1]], axis=2), axis=0)
         self.contact_labels_ = self.self_labels_[pairs[int(np.argmax(span))]]
+        labels = np.flatnonzero(self.object_group_ == self.contact_object_)
+        self.object_modes_ = label_modes(P[:, labels], self.object_template_[labels], self.object_tolerance,
+                                         MAX_OBJECT_MODES)
         self.object_mean_ = np.zeros(2)          # placeholder for the track below
         placed = np.isfinite(centres[:, self.contact_object_, 0])
         if placed.any():
@@ -609,19 +661,21 @@ class ArmStateLearner:
     def _object_track(self, P: np.ndarray, joints: Optional[np.ndarray] = None):
         """Object estimate for frames P (n, L, 2) taken in this order: (centres (n, 2), source (n,) index into
         OBJECT_SOURCES). A sequential estimate, because the arm hides the object's keypoints in the very frames
-        that matter. Each object label the frame shows implies a centre (its position minus its template offset);
+        that matter. Each object label the frame shows implies a centre per offset it has (its position minus the
+        offset; the first `object_modes` of object_modes_, from label_modes);
         a label within `hand_exclusion` px of where the joint regression puts one of the robot's labels at the
         frame's `joints` (n, 2; a NaN row or None: unknown) is left out: SIFT there mostly matched the hand (on
         non-benchmark scenes 21-32, 84 % of object labels within 3 px of a robot label were > 15 px off the object
-        against 4 % beyond 15 px). Where two implied centres agree (2 x `object_tolerance`) the frame places the
-        object ('frame'). With `object_labels` 1 a frame showing fewer keeps the previous estimate if one of its
-        centres lies within `track_gate` px of it, else it takes their median: the object was re-placed ('frame'
-        either way). A frame that shows no object label keeps the previous estimate ('recent' within
-        `recent_frames`, else 'stale'); before any, the training mean ('mean'). The default `hand_exclusion` and
-        `track_gate` are mm_bringup.tune_arm's 'track' choice (held-out frames > 8 px off: 5.1 %, against 6.6 %
-        with no exclusion)."""
+        against 4 % beyond 15 px). Where implied centres of two labels agree (2 x `object_tolerance`) the frame
+        places the object at the median of the centres agreeing with the one most labels agree with ('frame').
+        With `object_labels` 1 a frame placing none keeps the previous estimate if one of its centres lies within
+        `track_gate` px of it, else it takes the median of its labels' main-offset centres: the object was re-placed
+        ('frame' either way). A frame that shows no object label keeps the previous estimate ('recent' within
+        `recent_frames`, else 'stale'); before any, the training mean ('mean'). The defaults of `hand_exclusion`,
+        `track_gate` and `object_modes` are mm_bringup.tune_arm's 'track' choice (20 px, 8 px, 3: held-out frames
+        > 8 px off 2.9 %, against 4.6 % with one offset per label and 15 px / 15 px, the previous choice)."""
         labels = np.flatnonzero(self.object_group_ == self.contact_object_)
-        T = self.object_template_[labels]
+        modes = self.object_modes_[:, :self.object_modes]                       # (k, m, 2)
         Q = P[:, labels].copy()
         if joints is not None:
             q = np.asarray(joints, dtype=float).reshape(-1, 2)
@@ -633,18 +687,35 @@ class ArmStateLearner:
                 near = np.zeros(Q.shape[:2], bool)
                 near[known] = gap <= self.hand_exclusion
                 Q[near] = np.nan
-        implied = Q - T[None] + T.mean(axis=0)
-        agreed = group_shifts(Q, T, self.object_tolerance) + T.mean(axis=0)
+        # every centre a seen label implies, one per mode of that label: (n, k, m, 2)
+        implied = Q[:, :, None] - modes[None] + modes[:, 0].mean(axis=0)
+        owner = np.broadcast_to(np.arange(len(labels))[:, None], modes.shape[:2]).ravel()
+        main = np.broadcast_to(np.arange(modes.shape[1]) == 0, modes.shape[:2]).ravel()
+        radius = 2.0 * self.object_tolerance
         est = np.empty((len(P), 2))
         source = np.zeros(len(P), int)
         last = None                                  # (estimate, index of the newest frame that placed it)
         for i in range(len(P)):
-            seen = implied[i][np.isfinite(implied[i, :, 0])]
-            if np.isfinite(agreed[i, 0]):
-                last = (agreed[i], i)
-            elif self.object_labels == 1 and len(seen):
-                moved = last is None or np.linalg.norm(seen - last[0], axis=1).min() > self.track_gate
-                last = (np.median(seen, axis=0), i) if moved else (last[0], i)
+            cand = implied[i].reshape(-1, 2)
+            ok = np.isfinite(cand[:, 0])
+            cand, who, primary = cand[ok], owner[ok], main[ok]
+            placed = None
+            if len(np.unique(who)) >= 2:
+                # the candidate that the most labels agree with (one candidate per label), then the tightest
+                close = np.linalg.norm(cand[:, None] - cand[None], axis=2) <= radius
+                votes = np.array([len(np.unique(who[c])) for c in close])
+                if votes.max() >= 2:
+                    spread = np.where(close, np.linalg.norm(cand[:, None] - cand[None], axis=2), 0.0).sum(axis=1)
+                    best = np.lexsort((spread, -votes))[0]
+                    near = np.flatnonzero(close[best])
+                    keep = [near[who[near] == w][np.argmin(np.linalg.norm(cand[near[who[near] == w]] - cand[best],
+                                                                          axis=1))] for w in np.unique(who[near])]
+                    placed = np.median(cand[keep], axis=0)
+            if placed is not None:
+                last = (placed, i)
+            elif self.object_labels == 1 and len(cand):
+                moved = last is None or np.linalg.norm(cand - last[0], axis=1).min() > self.track_gate
+                last = (np.median(cand[primary], axis=0), i) if moved else (last[0], i)
             if last is None:
                 est[i], source[i] = self.object_mean_, 3
             else:
@@ -928,10 +999,11 @@ class ArmStateLearner:
         """The contact-point attributes as arrays (empty when representation is not contact_point)."""
         if self.contact_labels_ is None:
             return dict(contact_labels=np.zeros(0, int), contact_params=np.zeros(0),
-                        train_object_source=np.zeros(0, int))
+                        object_modes=np.zeros((0, MAX_OBJECT_MODES, 2)), train_object_source=np.zeros(0, int))
         return dict(contact_labels=np.asarray(self.contact_labels_, int),
                     contact_params=np.r_[self.contact_coef_, self.contact_offset_, self.contact_radius_,
                                          self.contact_softness_, self.object_mean_, self.contact_object_],
+                    object_modes=np.asarray(self.object_modes_, float),
                     train_object_source=np.asarray(self.train_object_source_, int))
 
     def _restore_contact(self, a: Dict[str, np.ndarray]) -> None:
@@ -952,6 +1024,11 @@ class ArmStateLearner:
         self.object_mean_, self.contact_object_ = params[6:8], int(params[8])
         if not 0 <= self.contact_object_ < self.n_objects_:
             raise ModelFileError('contact-point object is not a learned object')
+        modes = a['object_modes'].astype(float)
+        if (modes.shape != (int(np.sum(self.object_group_ == self.contact_object_)), MAX_OBJECT_MODES, 2)
+                or not np.all(np.isfinite(modes[:, 0]))):
+            raise ModelFileError("object_modes must hold a finite main mode for each of the object's labels")
+        self.object_modes_ = modes
         self.train_object_source_ = a['train_object_source'].astype(int).ravel()
         if np.any((self.train_object_source_ < 0) | (self.train_object_source_ >= len(OBJECT_SOURCES))):
             raise ModelFileError('train_object_source names no object source')
