@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from mm_bringup.arm_evaluation import moving_object_exploration, render_keypoints
-from mm_manifold.arm_learning import (OBJECT_SOURCES, ArmStateLearner, ModelFileError, fit_contact_disc,
-                                      fit_template, label_modes)
+from mm_manifold.arm_learning import (MISPLACED_SOFTNESSES, OBJECT_SOURCES, ArmStateLearner, ModelFileError,
+                                      fit_contact_disc, fit_template, label_modes)
 from mm_manifold.keypoints import KeypointExtractor
 from mm_sim.arm_model import ArmModel
 
@@ -20,6 +20,7 @@ def scene():
     data = moving_object_exploration(model, 240, 10, rng=np.random.default_rng(4))
     ext = KeypointExtractor()
     kps = render_keypoints(model, data['joints'], data['object'], ext)
+    data['keypoints'] = kps
     learner = ArmStateLearner(model.joint_limits, representation='contact_point', n_components=2, random_state=0,
                               n_folds=3, object_labels=1, lle_metric='local').fit(kps, data['joints'],
                                                                                   data['contact'])
@@ -40,6 +41,10 @@ def test_fitted_contact_point_lands_near_the_hand_centre(scene):
     hand = np.array([model.link_points(q)[2] for q in data['joints']])          # ground truth, for the test only
     error = np.linalg.norm(p - hand, axis=1)
     assert np.median(error) < 15.0, np.median(error)
+    # the contact region learns from every frame but the touch frames the disc puts far outside it
+    outside = np.linalg.norm(learner.train_vectors_, axis=1) > (
+        learner.contact_radius_ + MISPLACED_SOFTNESSES * learner.contact_softness_)
+    np.testing.assert_array_equal(learner.region_frames_, ~(data['contact'] & outside))
     # the fitted circle sits near the true contact distance (up to the template centre's offset)
     assert abs(learner.contact_radius_ - model.contact_distance) < 15.0
     d = np.linalg.norm(learner.train_vectors_, axis=1)
@@ -151,6 +156,18 @@ def test_the_object_track_places_the_object_from_either_keypoint_of_a_label(scen
     assert np.linalg.norm(learner._object_track(P)[0][0] - main.mean(axis=0) - [60.0, 40.0]) > 10.0
 
 
+def test_touch_frames_far_outside_the_disc_stay_out_of_the_contact_region(scene):
+    """Four no-touch frames far from the object relabelled as touches (as a touch frame whose object estimate is
+    wrong looks): the disc puts them far outside, so the contact region learns without them."""
+    model, data, fitted, _ = scene
+    far = np.flatnonzero(np.linalg.norm(fitted.train_vectors_, axis=1) > 3.0 * fitted.contact_radius_)[:4]
+    contact = data['contact'].copy()
+    contact[far] = True
+    learner = ArmStateLearner(**fitted.get_params()).fit(data['keypoints'], data['joints'], contact)
+    assert len(far) == 4 and not learner.region_frames_[far].any()
+    assert learner.region_frames_.sum() >= len(contact) - 6
+
+
 def test_contact_point_needs_the_joint_readings_and_two_dimensions(scene):
     model, data, learner, ext = scene
     frame = ext(model.render(data['joints'][0]))
@@ -175,7 +192,7 @@ def test_save_load_round_trip(scene, tmp_path):
     loaded = ArmStateLearner.load(path)
     assert loaded.get_params() == learner.get_params()
     for name in ('contact_labels_', 'contact_coef_', 'contact_offset_', 'object_mean_', 'object_modes_',
-                 'train_object_source_'):
+                 'train_object_source_', 'region_frames_'):
         np.testing.assert_array_equal(getattr(loaded, name), getattr(learner, name))
     assert loaded.contact_radius_ == learner.contact_radius_ and loaded.contact_object_ == learner.contact_object_
     for q in data['joints'][:4]:

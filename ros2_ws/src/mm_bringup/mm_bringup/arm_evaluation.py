@@ -129,7 +129,8 @@ def _source_counts(sources) -> Dict[str, int]:
 def embedding_rows(learner, X, c, X_test, c_test, d_test, n_neighbors_grid=(10, 20, 40),
                    keys: Optional[tuple] = None) -> Dict[str, object]:
     """Tables 1-2 rows of one keypoint vector: for LLE and PCA, n_neighbors, region model and radius by 5-fold
-    cross-validation on the training vectors X, scored on X_test (embedded out of sample). `keys` (default all):
+    cross-validation on the training vectors X (the regions on the learner's region_frames_), scored on X_test
+    (embedded out of sample). `keys` (default all):
     which of '<method>_best' / '<method>_<region model>' to fit and score."""
     from scipy.stats import spearmanr
     result: Dict[str, object] = {}
@@ -141,12 +142,13 @@ def embedding_rows(learner, X, c, X_test, c_test, d_test, n_neighbors_grid=(10, 
         t0 = time.perf_counter()
         sel = select_contact_model(X, c, method, learner.n_components, n_neighbors_grid,
                                    embedding_params=learner._embedding_params(method),
-                                   random_state=learner.random_state)
+                                   random_state=learner.random_state, region_frames=learner.region_frames_)
         select_s = time.perf_counter() - t0
         for key, m in wanted:
             cand = sel['best'] if m is None else best_of(sel, m)
             emb, region = fit_contact_model(X, c, cand, method, learner.n_components,
-                                            learner._embedding_params(method), learner.random_state)
+                                            learner._embedding_params(method), learner.random_state,
+                                            region_frames=learner.region_frames_)
             Y_test = emb.transform(X_test)
             conf = confusion(region.predict(Y_test), c_test)
             rho = spearmanr(region.closeness(Y_test), d_test)[0]
@@ -174,7 +176,8 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
     are chosen by 5-fold cross-validation on the training frames (select_contact_model) and the held-out frames are
     embedded out of sample. Keys 'lle_sphere' / 'pca_sphere' (the paper's sphere), 'lle_best' / 'pca_best' (the
     region model with the best cross-validated TPR - FPR), one per region model ('lle_ellipsoid', ...), and the
-    no-embedding baselines 'raw_sphere', 'raw_knn' and 'geometry' (the learner's keypoint-distance route on the
+    no-embedding baselines 'raw_sphere', 'raw_knn', 'disc' (contact_point only: ||d|| < the learner's own
+    contact radius) and 'geometry' (the learner's keypoint-distance route on the
     frame alone); each a confusion dict (tp, fn, fp, tn, tpr, fpr) with the
     chosen hyperparameters and the Spearman of the region's closeness with the true distance. Also returns the
     learner and the test data (for the figures), class balance and timings. `touch`: the label the robot learns
@@ -226,6 +229,10 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
         vector_width=int(X.shape[1]), frames_ms=frames_ms, learner_fit_s=fit_s, vectorize_ms=vector_ms)
     if learner.representation == 'contact_point':
         result['object_sources_test'] = _source_counts(learner.object_track(kps_test)[1])
+        # no embedding: the disc ||d|| < r the vector was fitted with, which tells the object estimate's errors
+        # (both rows suffer them) from the embedded region's
+        result['disc'] = dict(confusion(np.linalg.norm(X_test, axis=1) < learner.contact_radius_, c_test),
+                              region='the contact-point vector\'s own disc', radius=float(learner.contact_radius_))
     result.update(embedding_rows(learner, X, c, X_test, c_test, d_test, n_neighbors_grid))
     compared = {}
     for name, params in (compare_params or {}).items():
@@ -237,7 +244,8 @@ def evaluate_collision_prediction(n_train: int = 1000, n_test: int = 300, scene_
         result[f'{name}_params'] = dict(params, vector_width=int(other.train_vectors_.shape[1]))
         if other.representation == 'contact_point':
             result[f'{name}_object_sources_test'] = _source_counts(other.object_track(kps_test)[1])
-    result.update(raw_vector_baselines(X, c, X_test, c_test, random_state=learner.random_state))
+    use = learner.region_frames_           # every region, with or without an embedding, learns from the same frames
+    result.update(raw_vector_baselines(X[use], c[use], X_test, c_test, random_state=learner.random_state))
     # no embedding, the image geometry: the learned object placed where the frame alone shows it, against the
     # robot's segments at the frame's joints (the keypoint-distance map route); frames that do not place the
     # object fall back to the LLE region

@@ -171,6 +171,7 @@ def tables(out: Path, bench_json: Path) -> None:
             ('pca_best', 'Table 2, best boundary: PCA embedding, region model chosen by cross-validation'),
             ('raw_sphere', 'No embedding: contact sphere in the keypoint vector space'),
             ('raw_knn', 'No embedding: k-nearest-neighbour vote on the keypoint vector'),
+            ('disc', "No embedding: the contact-point vector's own disc ||d|| < r (fitted with the vector)"),
             ('geometry', "No embedding: the learned object placed where the frame shows it, against the robot's "
                          "segments with per-segment contact distances (the planning vector's learner)"))
     b = json.loads(bench_json.read_text())
@@ -222,7 +223,8 @@ def held_out_scene_table(b: dict) -> list:
     text += ['', f"Scenes meeting the targets: LLE sphere (TPR >= {t['sphere'][0]}, FPR <= {t['sphere'][1]}) "
              f"{b['scenes_lle_sphere_meeting_target']} of {n}, PCA sphere {b['scenes_pca_sphere_meeting_target']}; "
              f"best boundary (>= {t['best'][0]}, <= {t['best'][1]}) LLE {b['scenes_lle_best_meeting_target']} of "
-             f"{n}, PCA {b['scenes_pca_best_meeting_target']}.", '']
+             f"{n}, PCA {b['scenes_pca_best_meeting_target']}, the vector's own disc "
+             f"{b.get('scenes_disc_meeting_target', '-')}.", '']
     return text
 
 

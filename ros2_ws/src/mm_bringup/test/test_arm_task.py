@@ -63,6 +63,8 @@ def test_geometry_row_is_scored_by_the_named_learner():
     row = out['geometry']
     assert row['vector'] == 'relative' and row['tp'] + row['fn'] + row['fp'] + row['tn'] == 40
     assert out['representation'] == 'contact_point' and out['relative_params']['representation'] == 'relative'
+    disc = out['disc']              # the vector's own disc, on the same test frames
+    assert disc['tp'] + disc['fn'] + disc['fp'] + disc['tn'] == 40 and disc['radius'] == out['_learner'].contact_radius_
 
 
 def test_held_out_scenes_summarise_every_scene():
@@ -76,6 +78,6 @@ def test_held_out_scenes_summarise_every_scene():
         tpr = [r[key]['tpr'] for r in fitted]
         assert out[f'scenes_{key}']['min_tpr'] == min(tpr)
         assert out[f'scenes_{key}']['mean_tpr'] == pytest.approx(np.mean(tpr))
-    for key, (tpr, fpr) in (('lle_sphere', SPHERE_TARGET), ('lle_best', BEST_TARGET)):
+    for key, (tpr, fpr) in (('lle_sphere', SPHERE_TARGET), ('lle_best', BEST_TARGET), ('disc', BEST_TARGET)):
         assert out[f'scenes_{key}_meeting_target'] == sum(r[key]['tpr'] >= tpr and r[key]['fpr'] <= fpr
                                                           for r in fitted)

@@ -95,7 +95,8 @@ from mm_manifold.embedding import (LLE_METRICS, REGION_MODELS, ContactQuadric, C
                                    fit_contact_model, quadratic_features, select_contact_model)
 from mm_manifold.keypoints import FrameKeypoints, KeypointVectorizer, MeanImputer, NearestImputer
 
-FORMAT_VERSION = 10                # 10: object_modes (several template offsets per object label)
+FORMAT_VERSION = 11                # 10: object_modes (several template offsets per object label); 11: region_frames
+MISPLACED_SOFTNESSES = 2.0         # a touch frame this many softnesses outside the contact disc has a wrong object
 MAX_OBJECT_MODES = 3               # template offsets learned per object label (label_modes)
 REPRESENTATIONS = ('relative', 'absolute', 'contact_point')
 OBJECT_SOURCES = ('frame', 'recent', 'stale', 'mean')   # where the contact-point vector's object estimate came from
@@ -246,7 +247,7 @@ def fit_contact_disc(rel: np.ndarray, M: np.ndarray, contact: np.ndarray, fit: n
     """theta = (c1, c2, e1, e2, r, log s) of the contact-point vector d = rel + M c - e (rel (n, 2) = A - o, M (n, 2, 2)
     the link frame; module docstring) from the frames `fit` (n,) bool with touch labels `contact` (n,): (1) least
     squares of d = 0 over the touch frames, (2) a class-balanced logistic fit of (r - ||d||) / s, (3) refitted without
-    the touch frames it puts more than 2 s outside the disc. A touch frame there placed the object wrongly (touch
+    the touch frames it puts more than MISPLACED_SOFTNESSES s outside the disc. A touch frame there placed the object wrongly (touch
     means the hand is at it): a few such frames (objects 75-117 px off on diagnosis scene 21) pulled the radius from
     47 to 59 px. Refits until none is left (3 were enough on diagnosis scenes 21-32; 10 bound the loop)."""
     from scipy.optimize import minimize
@@ -271,7 +272,7 @@ def fit_contact_disc(rel: np.ndarray, M: np.ndarray, contact: np.ndarray, fit: n
     theta = solve(fit, np.r_[ce, 0.5 * float(np.median(d0[contact[fit]]) + np.median(d0[~contact[fit]])), np.log(5.0)])
     everything = np.ones(len(fit), bool)
     for _ in range(10):
-        far = contact & fit & (dist(theta, everything) > theta[4] + 2.0 * np.exp(theta[5]))
+        far = contact & fit & (dist(theta, everything) > theta[4] + MISPLACED_SOFTNESSES * np.exp(theta[5]))
         if not far.any() or (contact & fit & ~far).sum() < 2:
             break
         fit = fit & ~far
@@ -410,8 +411,9 @@ class ArmStateLearner:
     label_motion_, label_mean_ (mean training position of every label), lle_, pca_, region_ and
     pca_region_ (ContactSphere or ContactQuadric), selection_ and pca_selection_ (the cross-validated choice: model, C,
     threshold, cv_tpr, cv_fpr), imputer_ (for the embedded vectors), train_vectors_ (imputed), train_joints_,
-    train_contact_, train_stamps_ (int ns, or -1), train_predicted_ and train_closeness_ (LLE region, in-sample),
-    collision_map_ (rows, cols) bool and closeness_map_ (rows, cols) over the exploration frames; contact_point only
+    train_contact_, train_stamps_ (int ns, or -1), region_frames_ (bool per training frame: those the contact
+    region is fitted to; contact_point leaves out the touch frames its disc puts far outside), train_predicted_
+    and train_closeness_ (LLE region, in-sample), collision_map_ (rows, cols) bool and closeness_map_ (rows, cols) over the exploration frames; contact_point only
     (None otherwise): contact_labels_ (A, B label ids), contact_coef_ (c1, c2), contact_offset_ (e), contact_radius_
     and contact_softness_ [px] (the logistic fit), contact_object_ (object group used), object_mean_ (training mean
     of its centre), object_modes_ (k, MAX_OBJECT_MODES, 2) offsets of the object's labels (label_modes),
@@ -530,8 +532,6 @@ class ArmStateLearner:
         if contact.sum() < 4 or (~contact).sum() < 4:
             raise ValueError(f'need at least 4 contact and 4 no-contact frames, got {int(contact.sum())} and '
                              f'{int((~contact).sum())}')
-        # every fold needs two frames of each class: fewer folds while contact frames are scarce
-        folds = max(2, min(self.n_folds, int(contact.sum()) // 2, int((~contact).sum()) // 2))
         with threadpool_limits(1, user_api='blas'):
             vec = KeypointVectorizer(**{'random_state': self.random_state, **self.vectorizer_params})
             vec.fit(list(keypoints))
@@ -543,14 +543,17 @@ class ArmStateLearner:
             V = self._raw_vectors(raw, joints)
             self.imputer_ = NearestImputer(vec.n_impute_neighbors).fit(V)
             X = self.imputer_.transform(V)
+        use = self.region_frames_
+        # every fold needs two frames of each class: fewer folds while contact frames are scarce
+        folds = max(2, min(self.n_folds, int((contact & use).sum()) // 2, int((~contact & use).sum()) // 2))
         models = REGION_MODELS if self.region == 'auto' else (self.region,)
         fitted = {}
         for method in ('lle', 'pca'):
             sel = select_contact_model(X, contact, method, self.n_components, (self.n_neighbors,), models,
                                        n_folds=folds, embedding_params=self._embedding_params(method),
-                                       random_state=self.random_state)['best']
+                                       random_state=self.random_state, region_frames=use)['best']
             emb, region = fit_contact_model(X, contact, sel, method, self.n_components,
-                                            self._embedding_params(method), self.random_state)
+                                            self._embedding_params(method), self.random_state, region_frames=use)
             fitted[method] = (emb, region, sel)
         self.lle_, self.region_, self.selection_ = fitted['lle']
         self.pca_, self.pca_region_, self.pca_selection_ = fitted['pca']
@@ -614,6 +617,7 @@ class ArmStateLearner:
         """The contact-point vector's parameters (module docstring), from the training frames only."""
         for name in self._CONTACT_ATTRS:
             setattr(self, name, None)
+        self.region_frames_ = np.ones(len(contact), bool)
         if self.representation != 'contact_point':
             return
         P = raw.reshape(len(raw), -1, 2)
@@ -650,6 +654,11 @@ class ArmStateLearner:
         theta = fit_contact_disc(A - o, M, contact, fit)
         self.contact_coef_, self.contact_offset_ = theta[:2].copy(), theta[2:4].copy()
         self.contact_radius_, self.contact_softness_ = float(theta[4]), float(np.exp(theta[5]))
+        # the contact region is fitted without the touch frames the disc puts far outside it: their object
+        # estimate is wrong, so their vector says nothing about where contact lies (they are still embedded)
+        far = np.linalg.norm(self._contact_vectors(joints, o), axis=1) > (
+            self.contact_radius_ + MISPLACED_SOFTNESSES * self.contact_softness_)
+        self.region_frames_ = ~(contact & far)
 
     def _link_frame(self, joints: np.ndarray):
         """A (n, 2) and M (n, 2, 2) = [B - A, perp(B - A)] of the last link at `joints`, from the joint regression."""
@@ -1057,6 +1066,7 @@ class ArmStateLearner:
             pca_explained_variance=self.pca_.model_.explained_variance_,
             **region_arrays,
             train_vectors=self.train_vectors_, train_joints=self.train_joints_, train_contact=self.train_contact_,
+            region_frames=self.region_frames_,
             train_stamps=self.train_stamps_, label_roles=self.label_roles_, joint_coef=self.joint_coef_,
             label_r2=self.label_r2_, label_motion=self.label_motion_, label_mean=self.label_mean_,
             rigid_pairs=self.rigid_pairs_, object_group=self.object_group_, object_template=self.object_template_,
@@ -1165,7 +1175,9 @@ class ArmStateLearner:
         self.train_joints_ = a['train_joints']
         self.train_contact_ = a['train_contact'].astype(bool)
         self.train_stamps_ = a['train_stamps'].astype(np.int64)
-        if not len(self.train_joints_) == len(self.train_contact_) == len(X) == len(self.train_stamps_):
+        self.region_frames_ = a['region_frames'].astype(bool).ravel()
+        if not (len(self.train_joints_) == len(self.train_contact_) == len(X) == len(self.train_stamps_)
+                == len(self.region_frames_)):
             raise ModelFileError('training arrays have different lengths')
         self._update_map()
 

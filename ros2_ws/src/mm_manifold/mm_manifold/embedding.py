@@ -379,7 +379,8 @@ def select_contact_model(X: np.ndarray, contact: Sequence[bool], method: str = '
                          n_neighbors_grid: Sequence[int] = (10, 20, 40), models: Sequence[str] = REGION_MODELS,
                          C_grid: Sequence[float] = (1.0, 10.0, 100.0, 1000.0), n_folds: int = 5,
                          embedding_params: Optional[Dict] = None,
-                         random_state: Optional[int] = 0) -> Dict[str, object]:
+                         random_state: Optional[int] = 0,
+                         region_frames: Optional[np.ndarray] = None) -> Dict[str, object]:
     """Choose n_neighbors, the contact region model ('sphere', 'ellipsoid', 'quadric'), its C (quadric) and its
     threshold (radius) by stratified k-fold cross-validation on training frames only.
 
@@ -392,7 +393,8 @@ def select_contact_model(X: np.ndarray, contact: Sequence[bool], method: str = '
     grows without bound when a fold's frames are separable, so a threshold fitted on pooled out-of-fold log-odds
     does not carry over to the final fit (measured: cross-validated TPR 1.0 and held-out 0.86). The candidate with
     the largest J wins (ties: the simpler model, listed first). For PCA n_neighbors plays no role and only the first
-    value is tried.
+    value is tried. `region_frames` (bool per frame, default all): the frames whose label the regions are fitted to
+    and scored on; every frame is embedded (a frame whose vector belies its label still shapes the manifold).
     Returns dict(best=<candidate>, candidates=[...]), a candidate being dict(n_neighbors, model, C, threshold,
     cv_tpr, cv_fpr, cv_youden); for spheres and ellipsoids the relative radius is -threshold, for the quadric the
     threshold is 0.
@@ -401,7 +403,10 @@ def select_contact_model(X: np.ndarray, contact: Sequence[bool], method: str = '
     c = np.asarray(contact, dtype=bool).ravel()
     if len(X) != len(c):
         raise ValueError('X and contact must have the same length')
-    if n_folds < 2 or min(c.sum(), (~c).sum()) < 2 * n_folds:
+    use = np.ones(len(c), bool) if region_frames is None else np.asarray(region_frames, dtype=bool).ravel()
+    if len(use) != len(c):
+        raise ValueError('region_frames must have one entry per frame')
+    if n_folds < 2 or min((c & use).sum(), (~c & use).sum()) < 2 * n_folds:
         raise ValueError(f'need n_folds >= 2 and at least {2 * n_folds} frames of each class')
     unknown = set(models) - set(REGION_MODELS)
     if unknown or not models:
@@ -425,12 +430,13 @@ def select_contact_model(X: np.ndarray, contact: Sequence[bool], method: str = '
                 emb.fit(X[tr])
                 Y_va = emb.transform(X[va])
                 for model, C in keys:
-                    scores[(model, C)][va] = _region_score(model, emb.embedding_, c[tr], Y_va, C, random_state)
+                    scores[(model, C)][va] = _region_score(model, emb.embedding_[use[tr]], c[tr][use[tr]], Y_va, C,
+                                                           random_state)
         for model, C in keys:
             if model == 'quadric':      # its own boundary, f = 0 (see select_contact_model's docstring)
-                t, conf = 0.0, confusion(scores[(model, C)] >= 0.0, c)
+                t, conf = 0.0, confusion(scores[(model, C)][use] >= 0.0, c[use])
             else:
-                t, conf = best_threshold(scores[(model, C)], c)
+                t, conf = best_threshold(scores[(model, C)][use], c[use])
             candidates.append(dict(n_neighbors=int(nn), model=model, C=C, threshold=t, cv_tpr=conf['tpr'],
                                    cv_fpr=conf['fpr'], cv_youden=conf['tpr'] - conf['fpr']))
     best = max(candidates, key=lambda k: k['cv_youden'])       # first maximum: simpler model, fewer neighbours
@@ -446,9 +452,12 @@ def best_of(selection: Dict[str, object], model: str) -> Dict[str, object]:
 
 
 def fit_contact_model(X: np.ndarray, contact: Sequence[bool], candidate: Dict[str, object], method: str = 'lle',
-                      n_components: int = 3, embedding_params: Optional[Dict] = None, random_state: Optional[int] = 0):
-    """Fit the embedding and the contact region of a cross-validated candidate on all training frames:
-    returns (ImageEmbedding, ContactSphere or ContactQuadric)."""
+                      n_components: int = 3, embedding_params: Optional[Dict] = None, random_state: Optional[int] = 0,
+                      region_frames: Optional[np.ndarray] = None):
+    """Fit the embedding on all training frames and the contact region of a cross-validated candidate on
+    `region_frames` of them (default all; select_contact_model): returns (ImageEmbedding, ContactSphere or
+    ContactQuadric)."""
+    use = np.ones(len(X), bool) if region_frames is None else np.asarray(region_frames, dtype=bool).ravel()
     emb = ImageEmbedding(n_components, candidate['n_neighbors'], method, random_state=random_state,
                          **(embedding_params or {}))
     with threadpool_limits(1, user_api='blas'):
@@ -458,7 +467,7 @@ def fit_contact_model(X: np.ndarray, contact: Sequence[bool], candidate: Dict[st
     else:
         region = ContactSphere(relative_radius=max(-candidate['threshold'], 1e-6), random_state=random_state,
                                metric='euclidean' if candidate['model'] == 'sphere' else 'mahalanobis')
-    return emb, region.fit(emb.embedding_, contact)
+    return emb, region.fit(emb.embedding_[use], np.asarray(contact, dtype=bool)[use])
 
 
 def synthetic_keypoint_frames(n_frames: int = 1000, n_object: int = 10, n_hand: int = 10, n_background: int = 5,

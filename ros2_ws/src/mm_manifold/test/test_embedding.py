@@ -178,3 +178,29 @@ def test_select_contact_model_cross_validates_on_training_frames(method):
         -best_of(sel, 'sphere')['threshold'] * sphere.spread_)
     with pytest.raises(ValueError):
         select_contact_model(X, np.zeros(len(X), bool))
+
+
+def test_region_frames_leave_mislabelled_contact_frames_out_of_the_region():
+    """Contact inside a disc of radius 1; a few 'contact' frames far outside it (a wrong label) pull the sphere's
+    centre and radius outward, so it takes in far more no-contact frames. Left out of the region fit (region_frames),
+    they no longer do; every frame is still embedded."""
+    rng = np.random.default_rng(4)
+    X = rng.uniform(-3.0, 3.0, (900, 2))
+    c = np.linalg.norm(X, axis=1) < 1.0
+    wrong = rng.choice(np.flatnonzero(np.linalg.norm(X, axis=1) > 2.5), 12, replace=False)
+    c[wrong] = True
+    use = np.ones(len(c), bool)
+    use[wrong] = False
+    Xt = rng.uniform(-3.0, 3.0, (2000, 2))
+    ct = np.linalg.norm(Xt, axis=1) < 1.0
+    fpr = {}
+    for name, frames in (('all', None), ('clean', use)):
+        sel = select_contact_model(X, c, method='pca', n_components=2, models=('sphere',), n_folds=4,
+                                   region_frames=frames)
+        emb, region = fit_contact_model(X, c, sel['best'], method='pca', n_components=2, region_frames=frames)
+        assert emb.embedding_.shape == (900, 2)
+        fpr[name] = confusion(region.predict(emb.transform(Xt)), ct)['fpr']
+        assert confusion(region.predict(emb.transform(Xt)), ct)['tpr'] > 0.95
+    assert fpr['clean'] < 0.02 and fpr['clean'] < 0.5 * fpr['all'], fpr
+    with pytest.raises(ValueError):
+        select_contact_model(X, c, method='pca', n_components=2, region_frames=use[:10])

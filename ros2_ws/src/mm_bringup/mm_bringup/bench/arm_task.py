@@ -7,17 +7,18 @@ Parts:
   (TEST_SEED), never seen in training; the same frames for every method. Keys `lle_sphere_*` / `pca_sphere_*` (the
   paper's sphere: centre = mean of the contact frames, radius by cross-validation on the training frames),
   `lle_best_*` / `pca_best_*` (the region model with the best cross-validated TPR - FPR among sphere, Mahalanobis
-  ellipsoid and quadric), `raw_sphere_*` / `raw_knn_*` (no embedding), `geometry_*` (no embedding: the learned object
-  placed where the test frame shows it against the robot's segments, the keypoint-distance map route, run by the
-  planning vector's learner), each with tp / fn / fp / tn / tpr / fpr, and
-  the class balance (`eval_*_contact`). The learner's settings (representation, LLE method, dimensions) come from
-  mm_bringup.tune_arm, run on scenes and seeds disjoint from these; COMPARE_PARAMS' vectors get rows
+  ellipsoid and quadric), `raw_sphere_*` / `raw_knn_*` (no embedding), `disc_*` (no embedding: the contact-point
+  vector's own disc ||d|| < r, which shows what the object estimate alone costs), `geometry_*` (no embedding: the
+  learned object placed where the test frame shows it against the robot's segments, the keypoint-distance map
+  route, run by the planning vector's learner), each with tp / fn / fp / tn / tpr / fpr, and the class balance
+  (`eval_*_contact`). The learner's settings (representation, LLE method, dimensions) come from mm_bringup.tune_arm,
+  run on scenes and seeds disjoint from these; COMPARE_PARAMS' vectors get rows
   `<name>_lle_sphere_*`, `<name>_lle_best_*`, `<name>_pca_sphere_*` on the same frames.
 - The same tables on HELD_OUT_SCENES (`scenes_*`): one scene is one background, object texture and arm look, and
   the scores of a single scene vary with them (tune_arm's scenes 21-32: LLE sphere TPR 0.88-1.00). Every scene
-  with the benchmark's generators; per scene the LLE / PCA sphere and best rows and the raw-vector sphere, then the
-  mean, the worst and the number of scenes meeting issue 12's targets (sphere TPR >= 0.90 and FPR <= 0.10; best
-  >= 0.95 and <= 0.05). None of these scenes is used by a tuning script or a test.
+  with the benchmark's generators; per scene the LLE / PCA sphere and best rows, the raw-vector sphere and the
+  vector's own disc, then the mean, the worst and the number of scenes meeting issue 12's targets (sphere TPR >= 0.90
+  and FPR <= 0.10; best, and the disc, >= 0.95 and <= 0.05). None of these scenes is used by a tuning script or a test.
 - Planning before moving (`plan_*`): a learner (PLAN_PARAMS) fitted on the same exploration frames labelled by the whole-arm
   contact sense (arm/contact's arm_in_contact_at_frame, image_embedding's default label) is KEPT; for each of
   PLACEMENTS new object placements (generator PLACEMENT_SEED) with the object in the way of the straight move
@@ -57,7 +58,7 @@ SCENE_SEED, TRAIN_SEED, TEST_SEED, PLACEMENT_SEED = 0, 1, 2, 3       # benchmark
 PLACEMENTS = 40
 HELD_OUT_SCENES = tuple(range(40, 50))
 SPHERE_TARGET, BEST_TARGET = (0.90, 0.10), (0.95, 0.05)           # (min TPR, max FPR), issue 12.2
-SCENE_ROWS = ('lle_sphere', 'lle_best', 'pca_sphere', 'pca_best', 'raw_sphere')
+SCENE_ROWS = ('lle_sphere', 'lle_best', 'pca_sphere', 'pca_best', 'raw_sphere', 'disc')
 # Learner settings chosen by mm_bringup.tune_arm (results/tune_arm.json) on scenes and seeds disjoint from the above.
 LEARNER_PARAMS = dict(representation='contact_point', lle_method='standard', n_components=2, object_labels=1,
                       lle_metric='local')
@@ -226,7 +227,7 @@ def tables_result(ev: Dict[str, object]) -> Dict[str, object]:
     """Flat JSON keys of an evaluate_collision_prediction result."""
     out: Dict[str, object] = {}
     for key in ('lle_best', 'lle_sphere', 'lle_ellipsoid', 'lle_quadric', 'pca_best', 'pca_sphere', 'pca_ellipsoid',
-                'pca_quadric', 'raw_sphere', 'raw_knn', 'geometry'):
+                'pca_quadric', 'raw_sphere', 'raw_knn', 'disc', 'geometry'):
         for k, v in ev[key].items():
             if isinstance(v, (int, float, str, bool)) or v is None:
                 out[f'{key}_{k}'] = v
@@ -271,7 +272,7 @@ def held_out_scenes(scenes, n_train: int, n_test: int, extractor) -> Dict[str, o
             out[f'scenes_{key}'] = dict(mean_tpr=float(tpr.mean()), mean_fpr=float(fpr.mean()),
                                         min_tpr=float(tpr.min()), max_fpr=float(fpr.max()))
     for key, target in (('lle_sphere', SPHERE_TARGET), ('pca_sphere', SPHERE_TARGET), ('lle_best', BEST_TARGET),
-                        ('pca_best', BEST_TARGET)):
+                        ('pca_best', BEST_TARGET), ('disc', BEST_TARGET)):
         out[f'scenes_{key}_meeting_target'] = sum(meets(r, key, target) for r in rows)
     out['scenes_targets'] = dict(sphere=SPHERE_TARGET, best=BEST_TARGET)
     return out
