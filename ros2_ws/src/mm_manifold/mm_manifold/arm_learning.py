@@ -39,8 +39,9 @@ keypoints, each with its own offset), a lone label confirms the estimate or - wi
 `object_labels` 1 - re-places it, a frame without one keeps the last estimate; `_object_track`) and e an image
 offset. (c1, c2, e) come from least squares of ||p - o - e|| over the touch frames, then a class-balanced logistic
 fit of (r - ||d||) / s, refitted without the touch frames it puts more than 2 s outside the disc (their object
-estimate is wrong): contact depends on the hand relative to the object only, and the other vectors carry every arm
-label, which spreads the contact frames into a slab across poses. `lle_metric` 'local' keeps the disc ||d|| < r round in the LLE space
+estimate is wrong; the contact regions in the embeddings are fitted without them too, `region_frames_`): contact
+depends on the hand relative to the object only, and the other vectors carry every arm label, which spreads the
+contact frames into a slab across poses. `lle_metric` 'local' keeps the disc ||d|| < r round in the LLE space
 (mm_manifold.embedding.ImageEmbedding), where sklearn's unit-covariance coordinates squeeze it into an ellipse.
 
 `predict_collision_map(frame, recent)` plans before moving, for an object placement never seen (the paper's
@@ -247,9 +248,10 @@ def fit_contact_disc(rel: np.ndarray, M: np.ndarray, contact: np.ndarray, fit: n
     """theta = (c1, c2, e1, e2, r, log s) of the contact-point vector d = rel + M c - e (rel (n, 2) = A - o, M (n, 2, 2)
     the link frame; module docstring) from the frames `fit` (n,) bool with touch labels `contact` (n,): (1) least
     squares of d = 0 over the touch frames, (2) a class-balanced logistic fit of (r - ||d||) / s, (3) refitted without
-    the touch frames it puts more than MISPLACED_SOFTNESSES s outside the disc. A touch frame there placed the object wrongly (touch
-    means the hand is at it): a few such frames (objects 75-117 px off on diagnosis scene 21) pulled the radius from
-    47 to 59 px. Refits until none is left (3 were enough on diagnosis scenes 21-32; 10 bound the loop)."""
+    the touch frames it puts more than MISPLACED_SOFTNESSES s outside the disc. A touch frame there placed the object
+    wrongly (touch means the hand is at it): a few such frames (objects 75-117 px off on diagnosis scene 21) pulled
+    the radius from 47 to 59 px. Refits until none is left (3 were enough on diagnosis scenes 21-32; 10 bound the
+    loop)."""
     from scipy.optimize import minimize
     use = contact & fit
     Mc = np.concatenate([M[use], np.broadcast_to(-np.eye(2), (int(use.sum()), 2, 2))], axis=2).reshape(-1, 4)
@@ -413,10 +415,11 @@ class ArmStateLearner:
     threshold, cv_tpr, cv_fpr), imputer_ (for the embedded vectors), train_vectors_ (imputed), train_joints_,
     train_contact_, train_stamps_ (int ns, or -1), region_frames_ (bool per training frame: those the contact
     region is fitted to; contact_point leaves out the touch frames its disc puts far outside), train_predicted_
-    and train_closeness_ (LLE region, in-sample), collision_map_ (rows, cols) bool and closeness_map_ (rows, cols) over the exploration frames; contact_point only
-    (None otherwise): contact_labels_ (A, B label ids), contact_coef_ (c1, c2), contact_offset_ (e), contact_radius_
-    and contact_softness_ [px] (the logistic fit), contact_object_ (object group used), object_mean_ (training mean
-    of its centre), object_modes_ (k, MAX_OBJECT_MODES, 2) offsets of the object's labels (label_modes),
+    and train_closeness_ (LLE region, in-sample), collision_map_ (rows, cols) bool and closeness_map_ (rows, cols)
+    over the exploration frames; contact_point only (None otherwise): contact_labels_ (A, B label ids),
+    contact_coef_ (c1, c2), contact_offset_ (e), contact_radius_ and contact_softness_ [px] (the logistic fit),
+    contact_object_ (object group used), object_mean_ (training mean of its centre), object_modes_
+    (k, MAX_OBJECT_MODES, 2) offsets of the object's labels (label_modes),
     train_object_source_ (index into OBJECT_SOURCES per training frame).
     """
 
@@ -711,14 +714,15 @@ class ArmStateLearner:
             placed = None
             if len(np.unique(who)) >= 2:
                 # the candidate that the most labels agree with (one candidate per label), then the tightest
-                close = np.linalg.norm(cand[:, None] - cand[None], axis=2) <= radius
+                gap = np.linalg.norm(cand[:, None] - cand[None], axis=2)
+                close = gap <= radius
                 votes = np.array([len(np.unique(who[c])) for c in close])
                 if votes.max() >= 2:
-                    spread = np.where(close, np.linalg.norm(cand[:, None] - cand[None], axis=2), 0.0).sum(axis=1)
-                    best = np.lexsort((spread, -votes))[0]
-                    near = np.flatnonzero(close[best])
-                    keep = [near[who[near] == w][np.argmin(np.linalg.norm(cand[near[who[near] == w]] - cand[best],
-                                                                          axis=1))] for w in np.unique(who[near])]
+                    best = np.lexsort((np.where(close, gap, 0.0).sum(axis=1), -votes))[0]
+                    keep = []                        # per agreeing label, its candidate nearest the best
+                    for w in np.unique(who[close[best]]):
+                        mine = np.flatnonzero(close[best] & (who == w))
+                        keep.append(mine[np.argmin(gap[best, mine])])
                     placed = np.median(cand[keep], axis=0)
             if placed is not None:
                 last = (placed, i)
