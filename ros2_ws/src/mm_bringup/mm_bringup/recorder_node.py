@@ -97,6 +97,8 @@ class Recorder(Node):
         self._writer_lock = threading.Lock()   # discovery (executor thread) adds topics while the writer thread writes
         self._failed_topics: Dict[str, str] = {}
         self._recorded_subscriptions: Dict[str, object] = {}
+        # DDS matches each writer to our reader on its own schedule: the log says when a topic's recording begins
+        self._topics_with_data: set = set()
         self.received = 0
         self.dropped = 0          # arrived after the recording stopped (write failure)
         self._writer_thread = threading.Thread(target=self._write_loop, name='bag_writer', daemon=True)
@@ -143,6 +145,9 @@ class Recorder(Node):
     # --- data path ------------------------------------------------------------------------------------------
     def _on_message(self, topic: str, data: bytes, info: dict) -> None:
         self.received += 1
+        if topic not in self._topics_with_data:
+            self._topics_with_data.add(topic)
+            self.get_logger().info(f'first message on {topic}: recording it from here')
         if self.writer.failure is not None:
             self.dropped += 1
             return

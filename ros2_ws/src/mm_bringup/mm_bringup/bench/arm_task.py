@@ -60,7 +60,7 @@ HELD_OUT_SCENES = tuple(range(40, 50))
 SPHERE_TARGET, BEST_TARGET = (0.90, 0.10), (0.95, 0.05)           # (min TPR, max FPR), issue 12.2
 SCENE_ROWS = ('lle_sphere', 'lle_best', 'pca_sphere', 'pca_best', 'raw_sphere', 'disc')
 # Learner settings chosen by mm_bringup.tune_arm (results/tune_arm.json) on scenes and seeds disjoint from the above.
-LEARNER_PARAMS = dict(representation='contact_point', lle_method='standard', n_components=2, object_labels=1,
+LEARNER_PARAMS = dict(representation='contact_point', lle_method='modified', n_components=2, object_labels=1,
                       lle_metric='local')
 # The kept model that plans before moving: chosen separately by tune_arm's 'map' stage (DP success on its own scene),
 # where the contact-point vector planned worse than the relative one; the image_embedding node's defaults agree.
