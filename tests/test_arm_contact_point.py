@@ -156,6 +156,30 @@ def test_the_object_track_places_the_object_from_either_keypoint_of_a_label(scen
     assert np.linalg.norm(learner._object_track(P)[0][0] - main.mean(axis=0) - [60.0, 40.0]) > 10.0
 
 
+def test_look_alike_matches_vote_with_the_labels_but_never_place_the_object_alone(scene):
+    """A frame whose object labels all lost the ratio test to a look-alike: their near-best keypoints, within
+    object_match_distance, place the object where two agree; one alone, or beyond the distance, places nothing."""
+    _, _, fitted, _ = scene
+    learner = copy.deepcopy(fitted)
+    labels = np.flatnonzero(learner.object_group_ == learner.contact_object_)
+    main = learner.object_modes_[:, 0]
+    shift = np.array([60.0, 40.0])
+    P = np.full((2, learner.vectorizer_.n_labels_, 2), np.nan)
+    positions = np.full((2, len(labels), 2, 2), np.nan)
+    distances = np.full((2, len(labels), 2), np.inf)
+    positions[:, 0, 0], positions[:, 1, 0] = main[0] + shift, main[1] + shift
+    distances[:, :2, 0] = 0.05
+    positions[1, 1, 0] = np.nan                          # the second frame shows one look-alike only
+    learner.object_match_distance = 0.1
+    centres, sources = learner._object_track(P, None, (positions, distances))
+    np.testing.assert_allclose(centres[0], main.mean(axis=0) + shift)
+    assert sources.tolist() == [0, 1]                    # the second frame keeps the first's estimate
+    learner.object_match_distance = 0.04
+    assert learner._object_track(P, None, (positions, distances))[1].tolist() == [3, 3]   # the training mean
+    learner.object_match_distance = 0.0
+    assert learner._object_track(P, None, (positions, distances))[1].tolist() == [3, 3]
+
+
 def test_touch_frames_far_outside_the_disc_stay_out_of_the_contact_region(scene):
     """Four no-touch frames far from the object relabelled as touches (as a touch frame whose object estimate is
     wrong looks): the disc puts them far outside, so the contact region learns without them."""
@@ -180,7 +204,8 @@ def test_contact_point_needs_the_joint_readings_and_two_dimensions(scene):
     with pytest.raises(ValueError):
         ArmStateLearner(model.joint_limits, object_labels=3)
     for bad in (dict(hand_exclusion=-1.0), dict(track_gate=0.0), dict(hand_exclusion=float('nan')),
-                dict(object_modes=0), dict(object_modes=4)):
+                dict(object_modes=0), dict(object_modes=4), dict(object_match_distance=-0.1),
+                dict(object_match_distance=float('nan'))):
         with pytest.raises(ValueError):
             ArmStateLearner(model.joint_limits, **bad)
 

@@ -103,3 +103,42 @@ def test_vectorizer_input_checks():
     np.testing.assert_allclose(imp.transform([[0.9, np.nan]]), [[0.9, 0.5]])
     with pytest.raises(ValueError):
         imp.transform([[1.0, 2.0, 3.0]])
+
+
+def _unit(v):
+    return (v / np.linalg.norm(v, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def test_near_best_matches_keep_what_the_ratio_test_cannot_tell_from_a_look_alike():
+    """Two labels with near-identical descriptors 50 px apart (an object corner and a background corner that looks
+    like it): a keypoint between them loses the ratio test, yet near_best_matches offers it for both, closest first,
+    with its descriptor distance; a keypoint that looks like neither is offered too, far behind (the caller's bound
+    on the distance leaves it out)."""
+    rng = np.random.default_rng(5)
+    corner = _unit(rng.normal(size=128))
+    look_alike = _unit(corner + 0.1 * _unit(rng.normal(size=128)))
+    others = _unit(rng.normal(size=(4, 128)))
+    places = np.array([[100.0, 100.0], [150.0, 100.0], [300.0, 50.0], [50.0, 300.0], [250.0, 250.0],
+                       [320.0, 320.0]])
+    thumbnail = rng.random((32, 32)).astype(np.float32)
+    frames = []
+    for _ in range(30):
+        desc = _unit(np.vstack([corner, look_alike, others]) + 0.002 * rng.normal(size=(6, 128)))
+        frames.append(FrameKeypoints(places + rng.normal(0.0, 0.5, places.shape), desc, thumbnail))
+    vec = KeypointVectorizer(random_state=0).fit(frames)
+    label_of = vec.assign_labels(frames[0])
+    assert sorted(label_of.tolist()) == list(range(6))
+    between = _unit(corner + look_alike)
+    stranger = _unit(rng.normal(size=128))
+    frame = FrameKeypoints(np.array([[125.0, 100.0], [300.0, 50.0], [125.0, 96.0]]),
+                           np.vstack([between, others[0], stranger]), thumbnail)
+    assert vec.assign_labels(frame).tolist() == [-1, label_of[2], -1]
+    wanted = [label_of[0], label_of[1], label_of[2], label_of[3]]
+    positions, distances = vec.near_best_matches(frame, wanted, 2)
+    assert positions.shape == (4, 2, 2) and distances.shape == (4, 2)
+    for row in (0, 1):                                   # the ambiguous keypoint, for both look-alike labels
+        np.testing.assert_allclose(positions[row, 0], [125.0, 100.0])
+        np.testing.assert_allclose(positions[row, 1], [125.0, 96.0])
+        assert distances[row, 0] < 0.01 and distances[row, 1] > 1.0
+    np.testing.assert_allclose(positions[2, 0], [300.0, 50.0])                  # a clear match is near-best too
+    assert np.isnan(positions[3]).all()                                          # not in the frame

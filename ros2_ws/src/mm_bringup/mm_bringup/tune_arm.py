@@ -42,7 +42,7 @@ MAP_THRESHOLDS = (0.0, 0.25, 0.5, 0.75, 1.0)
 MAP_PLACEMENTS = 20
 TRACK_SCENES, TRACK_TRAIN_SEED, TRACK_TEST_SEED = tuple(range(21, 33)), 101, 102
 TRACK_GRID = dict(hand_exclusion=(0.0, 10.0, 15.0, 20.0, 25.0, 30.0), track_gate=(8.0, 15.0, 25.0),
-                  object_modes=(1, 2, 3))
+                  object_modes=(1, 2, 3), object_match_distance=(0.0, 0.05, 0.1, 0.2, 0.3, 0.5))
 TRACK_ERROR_PX = 8.0
 
 
@@ -102,13 +102,14 @@ def tune_track(n_train: int, n_test: int, extractor) -> dict:
             continue
         P_train = learner.vectorizer_.training_vectors_.reshape(n_train, -1, 2)
         P_test = learner.vectorizer_.transform(kps_test).reshape(len(kps_test), -1, 2)
+        alike_train, alike_test = learner._look_alikes(kps_train), learner._look_alikes(kps_test)
         row = dict(scene=scene, share={})
         for i, combo in enumerate(combos):
             for name, value in combo.items():        # track-time settings: no refit needed
                 setattr(learner, name, value)
-            agreed, source = learner._object_track(P_train, train['joints'])
+            agreed, source = learner._object_track(P_train, train['joints'], alike_train)
             offset = np.median(agreed[source == 0] - train['object'][source == 0], axis=0)
-            est = learner._object_track(P_test, test['joints'])[0]
+            est = learner._object_track(P_test, test['joints'], alike_test)[0]
             share = float(np.mean(np.linalg.norm(est - offset - test['object'], axis=1) > TRACK_ERROR_PX))
             shares[i].append(share)
             row['share'][json.dumps(combo)] = share

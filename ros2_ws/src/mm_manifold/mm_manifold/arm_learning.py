@@ -35,7 +35,8 @@ perp(B - A) is a virtual contact point rigid with the last link (A, B: the two f
 labels that move with joint 1 and rigidly with each other, put where the joint regression puts them at the frame's
 joint readings, so never hidden), o the learned object's centre (template shift, tracked over the frames in order:
 labels next to the hand are left out, two agreeing labels place it (a label may stand for several of the object's
-keypoints, each with its own offset), a lone label confirms the estimate or - with
+keypoints, each with its own offset; a keypoint the ratio test could not tell from a look-alike may stand in for
+a label in that agreement), a lone label confirms the estimate or - with
 `object_labels` 1 - re-places it, a frame without one keeps the last estimate; `_object_track`) and e an image
 offset. (c1, c2, e) come from least squares of ||p - o - e|| over the touch frames, then a class-balanced logistic
 fit of (r - ||d||) / s, refitted without the touch frames it puts more than 2 s outside the disc (their object
@@ -96,9 +97,11 @@ from mm_manifold.embedding import (LLE_METRICS, REGION_MODELS, ContactQuadric, C
                                    fit_contact_model, quadratic_features, select_contact_model)
 from mm_manifold.keypoints import FrameKeypoints, KeypointVectorizer, MeanImputer, NearestImputer
 
-FORMAT_VERSION = 11                # 10: object_modes (several template offsets per object label); 11: region_frames
+FORMAT_VERSION = 12                # 10: object_modes (several template offsets per object label); 11: region_frames;
+                                   # 12: object_match_distance
 MISPLACED_SOFTNESSES = 2.0         # a touch frame this many softnesses outside the contact disc has a wrong object
 MAX_OBJECT_MODES = 3               # template offsets learned per object label (label_modes)
+AMBIGUOUS_PER_LABEL = 2            # look-alike keypoints an object label may stand for in one frame (_object_track)
 REPRESENTATIONS = ('relative', 'absolute', 'contact_point')
 OBJECT_SOURCES = ('frame', 'recent', 'stale', 'mean')   # where the contact-point vector's object estimate came from
 MAP_METHODS = ('keypoint_distance', 'embedding')
@@ -408,7 +411,8 @@ class ArmStateLearner:
     mm_bringup.tune_arm), move_clearance [px] (keypoint_distance: the predicted clearance a move between cell centres
     must keep to count as free in blocked_moves; chosen by mm_bringup.tune_arm_reach), lle_metric ('unit' or
     'local': ImageEmbedding's scaling of the LLE coordinates; 'local' keeps the input's neighbour distances),
-    hand_exclusion, track_gate [px] and object_modes (contact_point's object track: _object_track).
+    hand_exclusion, track_gate [px], object_modes and object_match_distance (contact_point's object track:
+    _object_track; 0 leaves the look-alike matches out).
     Learned attributes: vectorizer_, label_roles_, joint_coef_ (joint regression of every label), label_r2_,
     label_motion_, label_mean_ (mean training position of every label), lle_, pca_, region_ and
     pca_region_ (ContactSphere or ContactQuadric), selection_ and pca_selection_ (the cross-validated choice: model, C,
@@ -432,7 +436,8 @@ class ArmStateLearner:
                  map_threshold: float = 0.25, map_method: str = 'embedding', rigid_tolerance: float = 2.0,
                  object_tolerance: float = 3.0, margin_quantile: float = 0.01, unplaced_object: str = 'embedding',
                  move_clearance: float = 3.0, object_labels: int = 2, lle_metric: str = 'unit',
-                 hand_exclusion: float = 20.0, track_gate: float = 8.0, object_modes: int = 3):
+                 hand_exclusion: float = 20.0, track_gate: float = 8.0, object_modes: int = 3,
+                 object_match_distance: float = 0.0):
         lim = np.asarray(joint_limits, dtype=float)
         if lim.shape != (2, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
             raise ValueError('joint_limits must be ((lo0, hi0), (lo1, hi1)) with finite lo < hi')
@@ -467,6 +472,8 @@ class ArmStateLearner:
             raise ValueError('hand_exclusion must be in [0, 100) px and track_gate in (0, 1000) px')
         if object_modes not in range(1, MAX_OBJECT_MODES + 1):
             raise ValueError(f'object_modes must be 1 ... {MAX_OBJECT_MODES}')
+        if not 0.0 <= object_match_distance <= 4.0:
+            raise ValueError('object_match_distance must be in [0, 4] (squared distance of unit descriptors)')
         if lle_metric not in LLE_METRICS:
             raise ValueError(f'lle_metric must be one of {LLE_METRICS}')
         if representation == 'contact_point' and n_components > 2:
@@ -506,6 +513,7 @@ class ArmStateLearner:
         self.hand_exclusion = float(hand_exclusion)
         self.track_gate = float(track_gate)
         self.object_modes = int(object_modes)
+        self.object_match_distance = float(object_match_distance)
 
     def get_params(self) -> Dict[str, object]:
         """The constructor's parameters (JSON-able), as saved with the model."""
@@ -520,7 +528,7 @@ class ArmStateLearner:
                     margin_quantile=self.margin_quantile, unplaced_object=self.unplaced_object,
                     move_clearance=self.move_clearance, object_labels=self.object_labels,
                     lle_metric=self.lle_metric, hand_exclusion=self.hand_exclusion, track_gate=self.track_gate,
-                    object_modes=self.object_modes)
+                    object_modes=self.object_modes, object_match_distance=self.object_match_distance)
 
     # --- fitting ------------------------------------------------------------------------------------------
     def fit(self, keypoints: Sequence[FrameKeypoints], joints, contact, stamps=None) -> 'ArmStateLearner':
@@ -542,8 +550,8 @@ class ArmStateLearner:
             self.vectorizer_ = vec
             self._learn_roles(raw, joints)
             self._fit_object_geometry(raw, joints, contact)
-            self._fit_contact_point(raw, joints, contact)
-            V = self._raw_vectors(raw, joints)
+            look_alikes = self._fit_contact_point(raw, joints, contact, keypoints)
+            V = self._raw_vectors(raw, joints, look_alikes)
             self.imputer_ = NearestImputer(vec.n_impute_neighbors).fit(V)
             X = self.imputer_.transform(V)
         use = self.region_frames_
@@ -616,13 +624,14 @@ class ArmStateLearner:
     _CONTACT_ATTRS = ('contact_labels_', 'contact_coef_', 'contact_offset_', 'contact_radius_', 'contact_softness_',
                       'contact_object_', 'object_mean_', 'object_modes_', 'train_object_source_')
 
-    def _fit_contact_point(self, raw: np.ndarray, joints: np.ndarray, contact: np.ndarray) -> None:
-        """The contact-point vector's parameters (module docstring), from the training frames only."""
+    def _fit_contact_point(self, raw: np.ndarray, joints: np.ndarray, contact: np.ndarray, keypoints):
+        """The contact-point vector's parameters (module docstring), from the training frames only; returns the
+        training frames' look-alike matches (_look_alikes; None for the other vectors)."""
         for name in self._CONTACT_ATTRS:
             setattr(self, name, None)
         self.region_frames_ = np.ones(len(contact), bool)
         if self.representation != 'contact_point':
-            return
+            return None
         P = raw.reshape(len(raw), -1, 2)
         if not self.n_objects_:
             raise ValueError('contact_point needs a learned object: no rigid group of external labels moves')
@@ -648,7 +657,8 @@ class ArmStateLearner:
         placed = np.isfinite(centres[:, self.contact_object_, 0])
         if placed.any():
             self.object_mean_ = centres[placed, self.contact_object_].mean(axis=0)
-        o, source = self._object_track(P, joints)
+        look_alikes = self._look_alikes(keypoints)
+        o, source = self._object_track(P, joints, look_alikes)
         self.train_object_source_ = source
         A, M = self._link_frame(joints)
         fit = source <= 1                         # the frame or one just before places the object
@@ -662,6 +672,18 @@ class ArmStateLearner:
         far = np.linalg.norm(self._contact_vectors(joints, o), axis=1) > (
             self.contact_radius_ + MISPLACED_SOFTNESSES * self.contact_softness_)
         self.region_frames_ = ~(contact & far)
+        return look_alikes
+
+    def _look_alikes(self, keypoints: Sequence[FrameKeypoints]):
+        """Per frame, the keypoints each label of the tracked object may be although the ratio test could not tell
+        them from a look-alike (KeypointVectorizer.near_best_matches): positions (n, k, AMBIGUOUS_PER_LABEL, 2) and
+        squared descriptor distances (n, k, AMBIGUOUS_PER_LABEL). On the benchmark scene the object often lies on a
+        background shape whose corners look like its own; its labels then lose the ratio test in every frame."""
+        labels = np.flatnonzero(self.object_group_ == self.contact_object_)
+        matches = [self.vectorizer_.near_best_matches(k, labels, AMBIGUOUS_PER_LABEL) for k in keypoints]
+        if not matches:
+            return np.zeros((0, len(labels), AMBIGUOUS_PER_LABEL, 2)), np.zeros((0, len(labels), AMBIGUOUS_PER_LABEL))
+        return np.stack([m[0] for m in matches]), np.stack([m[1] for m in matches])
 
     def _link_frame(self, joints: np.ndarray):
         """A (n, 2) and M (n, 2, 2) = [B - A, perp(B - A)] of the last link at `joints`, from the joint regression."""
@@ -670,7 +692,7 @@ class ArmStateLearner:
         A, u = R[:, ia], R[:, ib] - R[:, ia]
         return A, np.stack([u, np.stack([-u[:, 1], u[:, 0]], axis=1)], axis=2)
 
-    def _object_track(self, P: np.ndarray, joints: Optional[np.ndarray] = None):
+    def _object_track(self, P: np.ndarray, joints: Optional[np.ndarray] = None, look_alikes=None):
         """Object estimate for frames P (n, L, 2) taken in this order: (centres (n, 2), source (n,) index into
         OBJECT_SOURCES). A sequential estimate, because the arm hides the object's keypoints in the very frames
         that matter. Each object label the frame shows implies a centre per offset it has (its position minus the
@@ -679,9 +701,11 @@ class ArmStateLearner:
         frame's `joints` (n, 2; a NaN row or None: unknown) is left out: SIFT there mostly matched the hand (on
         non-benchmark scenes 21-32, 84 % of object labels within 3 px of a robot label were > 15 px off the object
         against 4 % beyond 15 px). Where implied centres of two labels agree (2 x `object_tolerance`) the frame
-        places the object at the median of the centres agreeing with the one most labels agree with ('frame').
-        With `object_labels` 1 a frame placing none keeps the previous estimate if one of its centres lies within
-        `track_gate` px of it, else it takes the median of its labels' main-offset centres: the object was re-placed
+        places the object at the median of the centres agreeing with the one most labels agree with ('frame');
+        `look_alikes` (_look_alikes of the same frames, or None) add the centres their keypoints within
+        `object_match_distance` imply to that vote, never to the lone-label step below (two look-alikes of the
+        wrong shape rarely agree where the template says; one always agrees with itself). With `object_labels` 1 a
+        frame placing none keeps the previous estimate if one of its centres lies within `track_gate` px of it, else it takes the median of its labels' main-offset centres: the object was re-placed
         ('frame' either way). A frame that shows no object label keeps the previous estimate ('recent' within
         `recent_frames`, else 'stale'); before any, the training mean ('mean'). The defaults of `hand_exclusion`,
         `track_gate` and `object_modes` are mm_bringup.tune_arm's 'track' choice (20 px, 8 px, 3: held-out frames
@@ -703,6 +727,16 @@ class ArmStateLearner:
         implied = Q[:, :, None] - modes[None] + modes[:, 0].mean(axis=0)
         owner = np.broadcast_to(np.arange(len(labels))[:, None], modes.shape[:2]).ravel()
         main = np.broadcast_to(np.arange(modes.shape[1]) == 0, modes.shape[:2]).ravel()
+        # the same for the look-alike keypoints: (n, k, c, m, 2), owner per (k, c, m)
+        alike = np.full((len(P), len(labels), 0, modes.shape[1], 2), np.nan)
+        if look_alikes is not None and self.object_match_distance > 0:
+            A = np.where((look_alikes[1] <= self.object_match_distance)[..., None], look_alikes[0], np.nan)
+            if joints is not None and len(known) and self.hand_exclusion > 0:
+                with np.errstate(invalid='ignore'):
+                    gap = np.linalg.norm(A[known][:, :, :, None] - R[:, None, None], axis=4).min(axis=3)
+                A[known] = np.where((gap <= self.hand_exclusion)[..., None], np.nan, A[known])
+            alike = A[:, :, :, None] - modes[None, :, None] + modes[:, 0].mean(axis=0)
+        alike_owner = np.broadcast_to(np.arange(len(labels))[:, None, None], alike.shape[1:4]).ravel()
         radius = 2.0 * self.object_tolerance
         est = np.empty((len(P), 2))
         source = np.zeros(len(P), int)
@@ -711,19 +745,22 @@ class ArmStateLearner:
             cand = implied[i].reshape(-1, 2)
             ok = np.isfinite(cand[:, 0])
             cand, who, primary = cand[ok], owner[ok], main[ok]
+            extra = alike[i].reshape(-1, 2)
+            ok = np.isfinite(extra[:, 0])
+            voters, voter = np.concatenate([cand, extra[ok]]), np.concatenate([who, alike_owner[ok]])
             placed = None
-            if len(np.unique(who)) >= 2:
+            if len(np.unique(voter)) >= 2:
                 # the candidate that the most labels agree with (one candidate per label), then the tightest
-                gap = np.linalg.norm(cand[:, None] - cand[None], axis=2)
+                gap = np.linalg.norm(voters[:, None] - voters[None], axis=2)
                 close = gap <= radius
-                votes = np.array([len(np.unique(who[c])) for c in close])
+                votes = np.array([len(np.unique(voter[c])) for c in close])
                 if votes.max() >= 2:
                     best = np.lexsort((np.where(close, gap, 0.0).sum(axis=1), -votes))[0]
                     keep = []                        # per agreeing label, its candidate nearest the best
-                    for w in np.unique(who[close[best]]):
-                        mine = np.flatnonzero(close[best] & (who == w))
+                    for w in np.unique(voter[close[best]]):
+                        mine = np.flatnonzero(close[best] & (voter == w))
                         keep.append(mine[np.argmin(gap[best, mine])])
-                    placed = np.median(cand[keep], axis=0)
+                    placed = np.median(voters[keep], axis=0)
             if placed is not None:
                 last = (placed, i)
             elif self.object_labels == 1 and len(cand):
@@ -736,13 +773,15 @@ class ArmStateLearner:
                 est[i], source[i] = last[0], (0 if age == 0 else 1 if age <= self.recent_frames else 2)
         return est, source
 
-    def _newest_object(self, raw: np.ndarray, recent_raw: Sequence[np.ndarray], joints=None):
-        """Object estimate (2,) and its source index of the frame `raw` after the frames `recent_raw` (oldest first);
-        `joints`: the frame's joint readings, if known."""
-        q = np.full((len(recent_raw) + 1, 2), np.nan)
+    def _newest_object(self, frame: FrameKeypoints, recent: Sequence[FrameKeypoints], joints=None):
+        """Object estimate (2,) and its source index of `frame` after the frames `recent` (oldest first); `joints`:
+        the frame's joint readings, if known."""
+        frames = list(recent) + [frame]
+        q = np.full((len(frames), 2), np.nan)
         if joints is not None:
             q[-1] = np.asarray(joints, dtype=float).reshape(2)
-        est, source = self._object_track(np.array(list(recent_raw) + [raw]).reshape(len(recent_raw) + 1, -1, 2), q)
+        raw = self.vectorizer_.transform(frames)
+        est, source = self._object_track(raw.reshape(len(frames), -1, 2), q, self._look_alikes(frames))
         return est[-1], int(source[-1])
 
     def object_track(self, keypoints: Sequence[FrameKeypoints], joints=None):
@@ -752,7 +791,7 @@ class ArmStateLearner:
         if self.contact_labels_ is None:
             raise RuntimeError("object_track needs representation='contact_point'")
         raw = self.vectorizer_.transform(list(keypoints))
-        est, source = self._object_track(raw.reshape(len(raw), -1, 2), joints)
+        est, source = self._object_track(raw.reshape(len(raw), -1, 2), joints, self._look_alikes(keypoints))
         return est, np.array(OBJECT_SOURCES)[source]
 
     def _contact_vectors(self, joints: np.ndarray, centres: np.ndarray) -> np.ndarray:
@@ -826,13 +865,15 @@ class ArmStateLearner:
             P[hole] = R[hole]
         return P.ravel()
 
-    def _raw_vectors(self, raw: np.ndarray, joints: Optional[np.ndarray] = None) -> np.ndarray:
+    def _raw_vectors(self, raw: np.ndarray, joints: Optional[np.ndarray] = None, look_alikes=None) -> np.ndarray:
         """Vectors to embed (with NaN) from raw labelled positions of frames in order (hidden external labels
-        filled from the preceding frames); contact_point needs the frames' joint readings."""
+        filled from the preceding frames); contact_point needs the frames' joint readings and takes their
+        look-alike matches (_look_alikes)."""
         if self.representation == 'contact_point':
             if joints is None or len(np.asarray(joints).reshape(-1, 2)) != len(raw):
                 raise ValueError('contact_point needs the joint readings of every frame')
-            return self._contact_vectors(joints, self._object_track(raw.reshape(len(raw), -1, 2), joints)[0])
+            o = self._object_track(raw.reshape(len(raw), -1, 2), joints, look_alikes)[0]
+            return self._contact_vectors(joints, o)
         filled = np.array([self._fill_from_recent(raw[i], raw[max(0, i - self.recent_frames):i])
                            for i in range(len(raw))]) if len(raw) else raw
         return self._vectors_of_positions(filled.reshape(len(filled), -1, 2))
@@ -853,8 +894,11 @@ class ArmStateLearner:
     def frame_vectors(self, keypoints: Sequence[FrameKeypoints], joints=None) -> np.ndarray:
         """Imputed vectors (n, d) of new frames taken in this order, as embedded (for evaluation and figures);
         `joints` (n, 2): the frames' joint readings (used by contact_point only)."""
-        raw = self.vectorizer_.transform(list(keypoints))
-        return self.imputer_.transform(self._raw_vectors(raw, None if joints is None else np.asarray(joints, float)))
+        keypoints = list(keypoints)
+        raw = self.vectorizer_.transform(keypoints)
+        look_alikes = self._look_alikes(keypoints) if self.representation == 'contact_point' else None
+        return self.imputer_.transform(self._raw_vectors(raw, None if joints is None else np.asarray(joints, float),
+                                                         look_alikes))
 
     def _update_map(self) -> None:
         self.train_predicted_ = self.region_.predict(self.lle_.embedding_)
@@ -882,15 +926,14 @@ class ArmStateLearner:
         if not hasattr(self, 'region_'):
             raise RuntimeError('ArmStateLearner is not fitted')
         raw = self.vectorizer_.vectorize(frame)
-        recent_raw = [self.vectorizer_.vectorize(r) for r in recent]
         source = None
         if self.representation == 'contact_point':
             if joints is None:
                 raise ValueError('contact_point needs the joint readings of the frame')
-            o, s = self._newest_object(raw, recent_raw, joints)
+            o, s = self._newest_object(frame, recent, joints)
             v, source = self._contact_vectors(joints, o[None]), OBJECT_SOURCES[s]
         else:
-            filled = self._fill_from_recent(raw, recent_raw)
+            filled = self._fill_from_recent(raw, [self.vectorizer_.vectorize(r) for r in recent])
             v = self._vectors_of_positions(filled.reshape(1, -1, 2))
         x = self.imputer_.transform(v)[0]
         y = self.lle_transform(x[None])[0]
@@ -974,7 +1017,7 @@ class ArmStateLearner:
                 return dict(closeness=np.ones(len(q)), collision=np.ones(len(q), bool), clearance=None,
                             embedding=None, external_seen=seen, objects_placed=0, method=method)
         if self.representation == 'contact_point':
-            o = self._newest_object(raw, [self.vectorizer_.vectorize(r) for r in recent])[0]
+            o = self._newest_object(frame, recent)[0]
             V = self._contact_vectors(q, np.repeat(o[None], len(q), axis=0))
         else:
             P = np.repeat(filled[None], len(q), axis=0)

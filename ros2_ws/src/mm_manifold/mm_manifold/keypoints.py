@@ -396,26 +396,31 @@ class KeypointVectorizer:
             np.maximum(np.bincount(lab, minlength=self.n_labels_), 1)[:, None]
 
     # --- vectorising --------------------------------------------------------------------------------------
+    def _candidate_pairs(self, frame: FrameKeypoints):
+        """(keypoint index, exemplar index, squared descriptor distance) of every exemplar within max_pixel_shift of
+        each keypoint (KD-tree on exemplar positions, so the cost does not grow with the image area), sorted by
+        keypoint, then distance."""
+        near = self._exemplar_tree.query_ball_point(frame.positions, self.max_pixel_shift)
+        lengths = np.fromiter((len(n) for n in near), int, len(frame))
+        qi = np.repeat(np.arange(len(frame)), lengths)
+        ej = np.fromiter(itertools.chain.from_iterable(near), int, int(lengths.sum()))
+        d2 = 2.0 - 2.0 * np.einsum('ij,ij->i', frame.descriptors[qi], self.exemplar_descriptors_[ej])
+        order = np.lexsort((d2, qi))
+        return qi[order], ej[order], d2[order]
+
     def assign_labels(self, frame: FrameKeypoints) -> np.ndarray:
         """Label index per keypoint (-1: not matched); each label goes to at most one keypoint (the best match).
 
-        Candidates are the exemplars within max_pixel_shift (KD-tree on exemplar positions, so the cost does not
-        grow with the image area); a keypoint takes the label of its nearest candidate descriptor if that is
-        `match_ratio` closer than the nearest candidate of any other label."""
+        Candidates are the exemplars within max_pixel_shift; a keypoint takes the label of its nearest candidate
+        descriptor if that is `match_ratio` closer than the nearest candidate of any other label."""
         self._check_fitted()
         k = len(frame)
         out = np.full(k, -1, int)
         if k == 0:
             return out
-        near = self._exemplar_tree.query_ball_point(frame.positions, self.max_pixel_shift)
-        lengths = np.fromiter((len(n) for n in near), int, k)
-        if lengths.sum() == 0:
+        qi, ej, d2 = self._candidate_pairs(frame)
+        if not len(qi):
             return out
-        qi = np.repeat(np.arange(k), lengths)
-        ej = np.fromiter(itertools.chain.from_iterable(near), int, int(lengths.sum()))
-        d2 = 2.0 - 2.0 * np.einsum('ij,ij->i', frame.descriptors[qi], self.exemplar_descriptors_[ej])
-        order = np.lexsort((d2, qi))
-        qi, ej, d2 = qi[order], ej[order], d2[order]
         first = np.flatnonzero(np.r_[True, qi[1:] != qi[:-1]])
         kq = qi[first]
         best_d = d2[first]
@@ -434,6 +439,39 @@ class KeypointVectorizer:
                 taken[lab] = True
                 out[kq[c]] = lab
         return out
+
+    def near_best_matches(self, frame: FrameKeypoints, labels: Sequence[int], per_label: int):
+        """Keypoints that may be labels[j] although the ratio test cannot tell them from another label (a look-alike
+        elsewhere in the scene): those whose nearest exemplar of labels[j] within max_pixel_shift is at most
+        1 / match_ratio^2 times as far (squared descriptor distance) as their nearest exemplar of any label. Returns
+        positions (J, per_label, 2) and squared descriptor distances (J, per_label), the closest first, NaN / inf
+        where fewer; the caller decides which to believe (ArmStateLearner checks them against each other)."""
+        self._check_fitted()
+        labels = np.asarray(labels, dtype=int)
+        pos = np.full((len(labels), per_label, 2), np.nan)
+        dist = np.full((len(labels), per_label), np.inf)
+        if len(frame) == 0 or not len(labels):
+            return pos, dist
+        qi, ej, d2 = self._candidate_pairs(frame)
+        if not len(qi):
+            return pos, dist
+        best = np.full(len(frame), np.inf)
+        np.minimum.at(best, qi, d2)
+        slot = np.full(self.n_labels_, -1, int)
+        slot[labels] = np.arange(len(labels))
+        j = slot[self.exemplar_labels_[ej]]
+        keep = (j >= 0) & (d2 <= best[qi] / self.match_ratio ** 2)
+        qi, j, d2 = qi[keep], j[keep], d2[keep]
+        order = np.lexsort((d2, j))                           # per label, the closest first
+        qi, j, d2 = qi[order], j[order], d2[order]
+        _, first = np.unique(j * len(frame) + qi, return_index=True)   # a keypoint once per label (its closest)
+        first = np.sort(first)
+        qi, j, d2 = qi[first], j[first], d2[first]
+        rank = np.arange(len(j)) - np.searchsorted(j, j)      # position within its label's run
+        use = rank < per_label
+        pos[j[use], rank[use]] = frame.positions[qi[use]]
+        dist[j[use], rank[use]] = d2[use]
+        return pos, dist
 
     def vectorize(self, frame: Frame) -> np.ndarray:
         """(2 * n_labels_,) vector [x0, y0, x1, y1, ...] with NaN where a label was not matched."""
