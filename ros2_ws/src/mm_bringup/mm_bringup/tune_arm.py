@@ -102,6 +102,7 @@ def tune_track(n_train: int, n_test: int, extractor) -> dict:
             continue
         P_train = learner.vectorizer_.training_vectors_.reshape(n_train, -1, 2)
         P_test = learner.vectorizer_.transform(kps_test).reshape(len(kps_test), -1, 2)
+        learner.object_match_distance = max(TRACK_GRID['object_match_distance'])   # every bound filters these
         alike_train, alike_test = learner._look_alikes(kps_train), learner._look_alikes(kps_test)
         row = dict(scene=scene, share={})
         for i, combo in enumerate(combos):

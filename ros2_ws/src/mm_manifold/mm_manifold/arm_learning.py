@@ -678,11 +678,15 @@ class ArmStateLearner:
         """Per frame, the keypoints each label of the tracked object may be although the ratio test could not tell
         them from a look-alike (KeypointVectorizer.near_best_matches): positions (n, k, AMBIGUOUS_PER_LABEL, 2) and
         squared descriptor distances (n, k, AMBIGUOUS_PER_LABEL). On the benchmark scene the object often lies on a
-        background shape whose corners look like its own; its labels then lose the ratio test in every frame."""
+        background shape whose corners look like its own; its labels then lose the ratio test in every frame.
+        None while `object_match_distance` is 0: the track would not use them."""
+        if self.object_match_distance <= 0:
+            return None
         labels = np.flatnonzero(self.object_group_ == self.contact_object_)
         matches = [self.vectorizer_.near_best_matches(k, labels, AMBIGUOUS_PER_LABEL) for k in keypoints]
         if not matches:
-            return np.zeros((0, len(labels), AMBIGUOUS_PER_LABEL, 2)), np.zeros((0, len(labels), AMBIGUOUS_PER_LABEL))
+            shape = (0, len(labels), AMBIGUOUS_PER_LABEL)
+            return np.zeros(shape + (2,)), np.zeros(shape)
         return np.stack([m[0] for m in matches]), np.stack([m[1] for m in matches])
 
     def _link_frame(self, joints: np.ndarray):
@@ -705,7 +709,8 @@ class ArmStateLearner:
         `look_alikes` (_look_alikes of the same frames, or None) add the centres their keypoints within
         `object_match_distance` imply to that vote, never to the lone-label step below (two look-alikes of the
         wrong shape rarely agree where the template says; one always agrees with itself). With `object_labels` 1 a
-        frame placing none keeps the previous estimate if one of its centres lies within `track_gate` px of it, else it takes the median of its labels' main-offset centres: the object was re-placed
+        frame placing none keeps the previous estimate if one of its centres lies within `track_gate` px of it,
+        else it takes the median of its labels' main-offset centres: the object was re-placed
         ('frame' either way). A frame that shows no object label keeps the previous estimate ('recent' within
         `recent_frames`, else 'stale'); before any, the training mean ('mean'). The defaults of `hand_exclusion`,
         `track_gate` and `object_modes` are mm_bringup.tune_arm's 'track' choice (20 px, 8 px, 3: held-out frames
@@ -773,15 +778,15 @@ class ArmStateLearner:
                 est[i], source[i] = last[0], (0 if age == 0 else 1 if age <= self.recent_frames else 2)
         return est, source
 
-    def _newest_object(self, frame: FrameKeypoints, recent: Sequence[FrameKeypoints], joints=None):
-        """Object estimate (2,) and its source index of `frame` after the frames `recent` (oldest first); `joints`:
-        the frame's joint readings, if known."""
+    def _newest_object(self, raw: np.ndarray, frame: FrameKeypoints, recent: Sequence[FrameKeypoints], joints=None):
+        """Object estimate (2,) and its source index of `frame` (its vector `raw`, already computed by the caller)
+        after the frames `recent` (oldest first); `joints`: the frame's joint readings, if known."""
         frames = list(recent) + [frame]
         q = np.full((len(frames), 2), np.nan)
         if joints is not None:
             q[-1] = np.asarray(joints, dtype=float).reshape(2)
-        raw = self.vectorizer_.transform(frames)
-        est, source = self._object_track(raw.reshape(len(frames), -1, 2), q, self._look_alikes(frames))
+        P = np.array([self.vectorizer_.vectorize(r) for r in recent] + [raw]).reshape(len(frames), -1, 2)
+        est, source = self._object_track(P, q, self._look_alikes(frames))
         return est[-1], int(source[-1])
 
     def object_track(self, keypoints: Sequence[FrameKeypoints], joints=None):
@@ -930,7 +935,7 @@ class ArmStateLearner:
         if self.representation == 'contact_point':
             if joints is None:
                 raise ValueError('contact_point needs the joint readings of the frame')
-            o, s = self._newest_object(frame, recent, joints)
+            o, s = self._newest_object(raw, frame, recent, joints)
             v, source = self._contact_vectors(joints, o[None]), OBJECT_SOURCES[s]
         else:
             filled = self._fill_from_recent(raw, [self.vectorizer_.vectorize(r) for r in recent])
@@ -1017,7 +1022,7 @@ class ArmStateLearner:
                 return dict(closeness=np.ones(len(q)), collision=np.ones(len(q), bool), clearance=None,
                             embedding=None, external_seen=seen, objects_placed=0, method=method)
         if self.representation == 'contact_point':
-            o = self._newest_object(frame, recent)[0]
+            o = self._newest_object(raw, frame, recent)[0]
             V = self._contact_vectors(q, np.repeat(o[None], len(q), axis=0))
         else:
             P = np.repeat(filled[None], len(q), axis=0)
