@@ -436,8 +436,8 @@ class ArmStateLearner:
                  map_threshold: float = 0.25, map_method: str = 'embedding', rigid_tolerance: float = 2.0,
                  object_tolerance: float = 3.0, margin_quantile: float = 0.01, unplaced_object: str = 'embedding',
                  move_clearance: float = 3.0, object_labels: int = 2, lle_metric: str = 'unit',
-                 hand_exclusion: float = 20.0, track_gate: float = 8.0, object_modes: int = 3,
-                 object_match_distance: float = 0.0):
+                 hand_exclusion: float = 15.0, track_gate: float = 25.0, object_modes: int = 2,
+                 object_match_distance: float = 0.2):
         lim = np.asarray(joint_limits, dtype=float)
         if lim.shape != (2, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
             raise ValueError('joint_limits must be ((lo0, hi0), (lo1, hi1)) with finite lo < hi')
@@ -713,8 +713,8 @@ class ArmStateLearner:
         else it takes the median of its labels' main-offset centres: the object was re-placed
         ('frame' either way). A frame that shows no object label keeps the previous estimate ('recent' within
         `recent_frames`, else 'stale'); before any, the training mean ('mean'). The defaults of `hand_exclusion`,
-        `track_gate` and `object_modes` are mm_bringup.tune_arm's 'track' choice (20 px, 8 px, 3: held-out frames
-        > 8 px off 2.9 %, against 4.6 % with one offset per label and 15 px / 15 px, the previous choice)."""
+        `track_gate`, `object_modes` and `object_match_distance` are mm_bringup.tune_arm's 'track' choice (15 px,
+        25 px, 2, 0.2: held-out frames > 8 px off 0.58 %, against 2.9 % without look-alikes at 20 px / 8 px / 3)."""
         labels = np.flatnonzero(self.object_group_ == self.contact_object_)
         modes = self.object_modes_[:, :self.object_modes]                       # (k, m, 2)
         Q = P[:, labels].copy()
