@@ -1,15 +1,17 @@
 """mm_bringup wheeled_container: the wheeled loop's three nodes in one process. They are the usual nodes on the
 usual topics (the learning is identical to three processes: tests/test_determinism_under_load.py); here: the
-simulator keeps its own clock whatever `use_sim_time` the command line gives, node-specific parameters reach their
-node only, and a parameter a node refuses ends the process with one error line and status 2, as a single node's does
+simulator keeps its own clock whatever `use_sim_time` the command line gives, the two others share one `/clock`
+subscription (and cannot leave it), node-specific parameters reach their node only, and a parameter a node refuses ends the process with one error line and status 2, as a single node's does
 (the nodes created before it log as usual)."""
 import subprocess
 
 from mm_common.ros_harness import RosHarness
 from rcl_interfaces.srv import GetParameters
+from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
 
 from mm_bringup.process_graph import ProcessGraph, executable_path
+from mm_bringup.wheeled_container import SimClock, _fixed_clock
 
 NODES = ('wheeled_sim', 'switching_controller', 'sensor_manifold')
 
@@ -41,6 +43,9 @@ def test_three_nodes_in_one_process_on_the_simulators_clock(tmp_path):
             assert parameter(ros, node, 'sensor_manifold', 'use_sim_time').bool_value is True
             assert parameter(ros, node, 'switching_controller', 'exploration_steps').integer_value == 50
             assert parameter(ros, node, 'wheeled_sim', 'dt').double_value == 0.1
+            # one /clock subscription serves both nodes on the simulator's clock
+            clock_takers = [i.node_name for i in node.get_subscriptions_info_by_topic('/clock')]
+            assert sorted(n for n in clock_takers if n in NODES) == ['switching_controller'], clock_takers
             assert container.process.poll() is None
     finally:
         ros.close()
@@ -53,3 +58,25 @@ def test_a_refused_parameter_ends_the_container_with_one_line():
     lines = [line for line in result.stderr.splitlines() if line.strip() and not line.startswith('[INFO]')]
     assert len(lines) == 1 and 'SensorManifold: cannot start' in lines[0] and 'learn_after' in lines[0], \
         result.stderr
+
+
+def test_nodes_sharing_the_sim_clock_follow_one_subscription_and_keep_it():
+    ros = RosHarness()
+    try:
+        sim_time = [Parameter('use_sim_time', value=True)]
+        first, second = (ros.node(name, sim_time) for name in ('first', 'second'))
+        shared = SimClock()
+        for node in (first, second):
+            shared.share(node)
+            node.add_on_set_parameters_callback(_fixed_clock)
+        publisher = ros.node('clock_source')
+        assert [i.node_name for i in publisher.get_subscriptions_info_by_topic('/clock')] == ['first']
+        set_time = ros.sim_clock(publisher, first)
+        set_time(7)
+        assert second.get_clock().now().nanoseconds == 7 * 10 ** 9
+        result = second.set_parameters([Parameter('use_sim_time', value=False)])[0]
+        assert not result.successful and 'fixed' in result.reason
+        set_time(9)
+        assert second.get_clock().now().nanoseconds == 9 * 10 ** 9
+    finally:
+        ros.close()

@@ -8,7 +8,9 @@ thread instead of waking three processes in turn (graph rate in README, issue 14
 to whatever else runs, e.g. the demo's arm). Parameters: the nodes' own files with `--params-file` (keyed by node
 name, as wheeled_sim.yaml is) or `-p <node>:<name>:=<value>`; a bare `-p name:=value` reaches all three. The
 simulator owns `/clock` and the two others run on it: use_sim_time is false for wheeled_sim and true for the others
-whatever the arguments say.
+whatever the arguments say, and cannot be changed while they run. The two share one `/clock` subscription (the
+controller's; the learner's clock is attached to it): one delivery of the simulator's clock per step instead of two
+(README, issue 14).
 
 `--wait-for-subscriber NODE` (before `--ros-args`): the nodes are created in the loop's order (simulator,
 controller, learner, which closes the loop), each once the node NODE (e.g. a recorder in another process)
@@ -21,6 +23,7 @@ import argparse
 import sys
 from typing import Sequence
 
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.utilities import remove_ros_args
@@ -31,9 +34,38 @@ from mm_planner.switching_controller_node import SwitchingControllerNode
 from mm_sim.wheeled_sim_node import WheeledSim
 
 
-def _on_clock(node_class, sim_time: bool):
+def _fixed_clock(params) -> SetParametersResult:
+    """On-set callback: the clock a composed node runs on is fixed (a shared /clock subscription serves it)."""
+    if any(p.name == 'use_sim_time' for p in params):
+        return SetParametersResult(successful=False, reason='use_sim_time is fixed in wheeled_container')
+    return SetParametersResult(successful=True)
+
+
+class SimClock:
+    """One /clock subscription for the composed nodes on the simulator's clock: the first node's time source keeps
+    its subscription and every later node's clock is attached to it (rclpy has no public handle on a node's time
+    source: this is the one place that reaches `Node._time_source`)."""
+
+    def __init__(self):
+        self.source = None
+
+    def share(self, node: Node) -> None:
+        if self.source is None:
+            self.source = node._time_source
+        else:
+            node._time_source.detach_node()         # drops its own /clock subscription
+            self.source.attach_clock(node.get_clock())
+
+
+def _on_clock(node_class, sim_time: bool, sim_clock: SimClock):
     def factory():
-        return node_class(parameter_overrides=[Parameter('use_sim_time', value=sim_time)])
+        node = node_class(parameter_overrides=[Parameter('use_sim_time', value=sim_time)])
+        if sim_time:
+            sim_clock.share(node)
+        # Runs before the time source's own callback (rclpy calls the newest first) and refuses the change, so no
+        # node's clock leaves the shared source.
+        node.add_on_set_parameters_callback(_fixed_clock)
+        return node
     factory.__name__ = node_class.__name__
     return factory
 
@@ -59,8 +91,9 @@ def main(args=None):
                         help='the topics (absolute names) NODE must subscribe to (default: all of them)')
     options = parser.parse_args(remove_ros_args(argv)[1:])
     gate = _subscribed_by(options.wait_for_subscriber, options.wait_topics) if options.wait_for_subscriber else None
-    run_nodes([_on_clock(WheeledSim, False), _on_clock(SwitchingControllerNode, True),
-               _on_clock(SensorManifold, True)], argv, create_when=gate)
+    sim_clock = SimClock()
+    run_nodes([_on_clock(WheeledSim, False, sim_clock), _on_clock(SwitchingControllerNode, True, sim_clock),
+               _on_clock(SensorManifold, True, sim_clock)], argv, create_when=gate)
 
 
 if __name__ == '__main__':

@@ -67,6 +67,8 @@ LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durabi
 SPACE_NAMES = {SPACE_SENSOR1: 'sensor1_grid', SPACE_VIRTUAL: 'virtual_sensor1', SPACE_SENSOR2: 'sensor2'}
 MAX_STAMP_AHEAD = 60.0       # [s] a reading stamped further ahead of this node's clock (or newest sample) is forged
 RANGE_INPUTS = ('per_sensor', 'grouped')
+SORTED_SENSOR_NAMES = sorted(SENSOR_NAMES)
+SENSOR_INDEX = {name: index for index, name in enumerate(SENSOR_NAMES)}
 
 
 def _ns(stamp) -> int:
@@ -358,12 +360,12 @@ class SensorManifold(Node):
         self._fit_if_due()          # a verdict that came after those samples (no more come while the loop waits)
 
     def _on_command(self, msg: Float64MultiArray) -> None:
-        data = np.asarray(msg.data, dtype=float)
-        if data.shape != (2,) or not np.all(np.isfinite(data)):
+        data = msg.data
+        if len(data) != 2 or not all(math.isfinite(v) for v in data):
             # The simulator rejects it too: it did not move the robot, so it is no part of the chain either.
             self._reject('command', f'{list(data)}: need two finite wheel speeds')
             return
-        self._take(self.assembler.command(data))
+        self._take(self.assembler.command(np.array(data, dtype=float)))
 
     def _report_stall(self) -> None:
         """Timer: say what a long-waiting sample misses; the wait itself goes on (only the simulator ends it)."""
@@ -404,7 +406,7 @@ class SensorManifold(Node):
         """A step's five readings at once: all usable, or the step is dropped whole (the simulator sends it again
         while no command comes)."""
         names = list(msg.names)
-        if len(names) != len(msg.ranges) or sorted(names) != sorted(SENSOR_NAMES):
+        if len(names) != len(msg.ranges) or sorted(names) != SORTED_SENSOR_NAMES:
             self._reject('range group', f'names {names[:10]} with {len(msg.ranges)} ranges: need one Range for each of '
                                         f'{", ".join(SENSOR_NAMES)}')
             return
@@ -417,7 +419,7 @@ class SensorManifold(Node):
         if problem:
             self._reject('range group', problem)
             return
-        self._take_readings(stamp, [(SENSOR_NAMES.index(name), r) for name, r in zip(names, msg.ranges)])
+        self._take_readings(stamp, [(SENSOR_INDEX[name], r) for name, r in zip(names, msg.ranges)])
 
     def _take_readings(self, stamp: int, readings) -> None:
         """Valid (sensor index, Range) readings of the step `stamp` into the sample assembly."""
@@ -470,10 +472,11 @@ class SensorManifold(Node):
         msg = ManifoldState()
         msg.header.stamp = stamp
         msg.header.frame_id = 'base_link'
-        msg.sensor1 = [float(v) for v in reading[list(SENSOR1)]]
-        msg.sensor2 = [float(v) for v in reading[list(SENSOR2)]]
+        values = reading.tolist()
+        msg.sensor1 = [values[i] for i in SENSOR1]
+        msg.sensor2 = [values[i] for i in SENSOR2]
         msg.sensor1_range = self._group_range(SENSOR1)      # a step is complete only with every sensor's reading
-        msg.in_range = [bool(math.isfinite(v)) for v in reading]
+        msg.in_range = [math.isfinite(v) for v in values]
         msg.samples = len(self.readings)
         msg.active_space = SPACE_NONE
         if self.model is not None:

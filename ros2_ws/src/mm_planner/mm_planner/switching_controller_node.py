@@ -19,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from mm_common.node_utils import clock_went_back, declare, publish_if_subscribed, reject_non_finite, run_node
+from mm_common.node_utils import clock_went_back, declare, reject_non_finite, run_node
 from mm_common.qos import LOOP_QOS  # RELIABLE, deep history: see mm_common/qos.py
 from mm_msgs.msg import ControllerStatus, ManifoldState, ModelVerdict, SensorGoal
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
@@ -52,13 +52,17 @@ def _ns(stamp) -> int:
 
 
 def _readings_problem(name: str, values, length: int) -> Optional[str]:
-    """REP 117 readings: a distance >= 0, +-inf out of range, NaN lost."""
-    values = np.asarray(values, dtype=float)
-    if values.shape != (length,):
-        return f'{name} has {values.size} values, expected {length}'
-    if np.any(np.isfinite(values) & (values < 0)):
+    """REP 117 readings: a distance >= 0, +-inf out of range, NaN lost. (Plain Python: it runs every step, and numpy's
+    per-call overhead on a few values costs the lockstep loop more than the check itself.)"""
+    if len(values) != length:
+        return f'{name} has {len(values)} values, expected {length}'
+    if any(v < 0 and math.isfinite(v) for v in values):
         return f'{name} {list(values)} has a negative distance'
     return None
+
+
+def _finite(values) -> bool:
+    return all(math.isfinite(v) for v in values)
 
 
 class SwitchingControllerNode(Node):
@@ -209,18 +213,18 @@ class SwitchingControllerNode(Node):
             problem = _readings_problem(name, getattr(msg, name), length)
             if problem:
                 return problem
-        limits = np.asarray(msg.sensor1_range, dtype=float)
-        if limits.shape != (2,) or not (np.all(np.isfinite(limits)) and 0.0 <= limits[0] < limits[1]):
+        limits = msg.sensor1_range
+        if len(limits) != 2 or not (_finite(limits) and 0.0 <= limits[0] < limits[1]):
             return f'sensor1_range {list(limits)} is not [min, max] with 0 <= min < max (the front sensors\' range)'
         if len(msg.in_range) not in (0, 5):
             return f'in_range has {len(msg.in_range)} flags, expected 5'
         if msg.active_space not in SPACES:
             return f'unknown active_space {msg.active_space}'
         for name in ('coordinates', 'sensor2_estimate'):
-            values = np.asarray(getattr(msg, name), dtype=float)
+            values = getattr(msg, name)
             if len(values) not in (0, 2):
                 return f'{name} has {len(values)} values, expected 0 or 2'
-            if not np.all(np.isfinite(values)):
+            if not _finite(values):
                 return f'{name} {list(values)} is not finite'
         model = self.agent.model
         if model is not None and len(msg.coordinates):
@@ -290,19 +294,23 @@ class SwitchingControllerNode(Node):
             self.last_command = Float64MultiArray(data=[float(v) for v in decision.command])
             self.answered_wall = time.monotonic()
             self.command_pub.publish(self.last_command)
-        msg = ControllerStatus()
         # Stamped with the state it answers (the sim clock on /clock may lag behind the state that just arrived).
         stamp = decision.stamp if decision.stamp is not None else self.state_stamp
-        msg.header.stamp = stamp if stamp is not None else self.get_clock().now().to_msg()
-        msg.phase, msg.phase_name, msg.detail = decision.phase, decision.phase_name, decision.detail
-        msg.error, msg.target, msg.step = float(decision.error), list(decision.target), decision.step
-        msg.goal_stamp = decision.goal_stamp if decision.goal_stamp is not None else Time()
-        publish_if_subscribed(self.status_pub, msg)
+        if stamp is None:
+            stamp = self.get_clock().now().to_msg()
+        # Built only for a subscriber: unread, the status would cost the lockstep loop its construction every step.
+        if self.status_pub.get_subscription_count():
+            msg = ControllerStatus()
+            msg.header.stamp = stamp
+            msg.phase, msg.phase_name, msg.detail = decision.phase, decision.phase_name, decision.detail
+            msg.error, msg.target, msg.step = float(decision.error), list(decision.target), decision.step
+            msg.goal_stamp = decision.goal_stamp if decision.goal_stamp is not None else Time()
+            self.status_pub.publish(msg)
         if decision.verdict is not None:
             v = decision.verdict
             verdict = ModelVerdict(model_samples=v.model_samples, accepted=v.accepted, reason=v.reason,
                                    learner_samples=v.learner_samples)
-            verdict.header.stamp = msg.header.stamp
+            verdict.header.stamp = stamp
             self.verdict_pub.publish(verdict)
 
 
