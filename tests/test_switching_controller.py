@@ -182,6 +182,18 @@ def test_directed_exploration_finds_sensor2_where_undirected_rarely_does():
         WallAgent(dt, explorer_params={'excursion_shares': 0.5})
 
 
+def test_the_agents_controller_hyperparameters_reach_every_controller_it_makes(robot, model):
+    """controller_params (what mm_bringup.tune_wall --controller varies) reach each reach's controller; the control
+    step, the wheel-speed limit and the tolerance stay the agent's (and a goal's)."""
+    agent = WallAgent(DT, exploration_steps=0, rehearsals=0, controller_params={'retrace_history_steps': 7})
+    agent.step(Observation(model=WallModel.from_msg(model_message(robot, model))))
+    agent.step(Observation(goal=Goal(sensor2_goal_reading(robot, PAPER_GOAL_POSES['overlap']))))
+    assert agent.controller.retrace_history_steps == 7
+    for bad in ({'tolerance': 0.1}, {'retrace_history': 5}):
+        with pytest.raises(ValueError, match='cannot be set here'):
+            WallAgent(DT, controller_params=bad)
+
+
 def test_explorer_commands_stay_within_limits_and_leave_and_reenter_range():
     robot = WheeledRobot(noise_std=0.003, dropout=0.02, random_state=0)    # also copes with noise and lost readings
     agent = WallAgent(DT, exploration_steps=6000, random_state=3)
@@ -460,20 +472,46 @@ def test_retracing_the_blind_commands_puts_the_robot_back_exactly():
     c.set_goal(np.array([0.17, 0.17]), np.array([3.0, 3.0]))
     rng = np.random.default_rng(1)
     start = pose = (0.0, 0.8, -1.2)
-    c._last_seen_command = np.array([2.0, 3.0])
+    c._remember(np.array([2.0, 3.0]), blind=False)             # the command that took the robot out of sight
     c._start_blind_stretch(None, field, None)
-    pose, _ = robot.step(pose, c._last_seen_command, DT)
+    pose, _ = robot.step(pose, np.array([2.0, 3.0]), DT)
     for u in [rng.choice([-6.0, -2.4, 0.72, 0.0, 6.0], 2) for _ in range(40)] + [np.array([0.72, 0.72])] * 10:
-        c._remember_blind(u)
+        c._remember(u, blind=True)
         pose, _ = robot.step(pose, u, DT)
     back = 0
-    while c._blind_commands:
+    while c._path:
         u, _, _ = c._retrace()
         assert np.max(np.abs(u)) <= 6.0 + 1e-9
         pose, _ = robot.step(pose, u, DT)
         back += 1
     assert np.allclose(pose, start, atol=1e-9)
     assert back < 51                       # slow runs go back at full speed: fewer steps than out
+
+
+def test_the_retrace_goes_on_back_along_the_path_before_the_stretch():
+    """A lost reading (NaN) can hide an out-of-range one, so the last step with a group 'seeing' the wall may have
+    seen nothing: where the robot is still blind after undoing the stretch, the retrace goes on back along the path
+    driven before it, at most `retrace_history_steps` steps, exactly."""
+    robot = WheeledRobot()
+    c = SwitchingController(DT, max_wheel_speed=6.0, retrace_history_steps=6)
+    c.set_goal(np.array([0.17, 0.17]), np.array([3.0, 3.0]))
+    pose = (0.0, 0.8, -1.2)
+    poses = []
+    seen = [np.array([1.0, 1.5]), np.array([-0.5, 0.5])] * 5          # 10 steps with the wall in sight
+    for u in seen:
+        poses.append(pose)
+        c._remember(u, blind=False)
+        pose, _ = robot.step(pose, u, DT)
+    assert sum(seconds for _, seconds in c._path) == pytest.approx(6 * DT)    # only the last 6 are kept
+    for u in [np.array([3.0, -3.0])] * 8 + [np.array([2.0, 2.0])] * 5:           # the blind stretch
+        c._remember(u, blind=True)
+        pose, _ = robot.step(pose, u, DT)
+    while c._path:
+        u, _, _ = c._retrace()
+        pose, _ = robot.step(pose, u, DT)
+    assert np.allclose(pose, poses[-6], atol=1e-9)        # back where the kept history began
+    u, _, _ = c._retrace()                                 # nothing left and still blind: lost, with the reason
+    assert not np.any(u) and c.failure.startswith('lost')
 
 
 @pytest.fixture(scope='module')

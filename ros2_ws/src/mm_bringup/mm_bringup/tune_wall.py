@@ -5,7 +5,7 @@ The learning loop is the graph's: the agent explores `exploration_steps`, the le
 takes the model through its message; a model that is not ready, or that failed one of the agent's rehearsals, sends
 the agent exploring `exploration_steps // 4` more, and the learner refits after as many more samples (the nodes'
 rule), until the model is ready and rehearsed or the cap is hit (mm_bringup.wall_experiment.learn, with the
-hyperparameters under test: explorer settings, `--rehearsals`, `--model`). Samples are counted as the nodes count them
+hyperparameters under test: explorer settings, `--rehearsals`, `--model`, `--controller`). Samples are counted as the nodes count them
 (every step, extra exploration and rehearsals included); `explored` counts the exploration steps among them.
 
 Seeds: exploration seeds 100-119 and task seed 1103 only; the benchmark (mm_bringup/bench/wall_task.py) uses
@@ -57,7 +57,8 @@ DIMENSION_RULE = "most explorations read 2-D (the grid's dimension)"
 TASK_SEED = 1103
 
 
-def evaluate(robot: WheeledRobot, dt: float, model, tasks: int, tolerance: float, task_seed: int = TASK_SEED):
+def evaluate(robot: WheeledRobot, dt: float, model, tasks: int, tolerance: float, task_seed: int = TASK_SEED,
+             controller_params: Optional[dict] = None):
     """(success rate, median path ratio, median final error) over random tasks, the model used even if its held-out
     error is above its bound (a copy that passes the check)."""
     if model is not None:
@@ -72,7 +73,8 @@ def evaluate(robot: WheeledRobot, dt: float, model, tasks: int, tolerance: float
             outcomes.append(False)
             continue
         try:
-            ep = run_episode(robot, model, start, reading, tolerance=tolerance, dt=dt)
+            ep = run_episode(robot, model, start, reading, tolerance=tolerance, dt=dt,
+                             controller_params=controller_params)
         except ValueError:
             outcomes.append(False)
             continue
@@ -85,7 +87,7 @@ def evaluate(robot: WheeledRobot, dt: float, model, tasks: int, tolerance: float
 
 
 def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, model_params=None,
-             explorer_params=None, rehearsals=None, noisy: bool = False) -> Dict:
+             explorer_params=None, rehearsals=None, noisy: bool = False, controller_params=None) -> Dict:
     """Learn as the graph does and run the tasks (`noisy`: the benchmark's reading noise and dropout, goals and
     success judged on noise-free readings as there)."""
     t0 = time.monotonic()
@@ -93,12 +95,12 @@ def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, mod
                  random_state=seed) if noisy else {}
     robot, dt, start = robot_variant(layout, robot_name, **noise)
     learned = learn(robot, steps, dt, seed, start, max_samples=max_samples, model_params=model_params,
-                    explorer_params=explorer_params, rehearsals=rehearsals)
+                    explorer_params=explorer_params, rehearsals=rehearsals, controller_params=controller_params)
     model, samples = learned.fitted, learned.samples
     # Tasks are run with the model even when it is not ready (as if announced anyway): success_if_used against the
     # held-out error is what the readiness bound is chosen from; `success` counts a not-ready model as 0 (the graph
     # never acts on it).
-    rate, ratio, err = evaluate(robot, dt, model, tasks, tolerance)
+    rate, ratio, err = evaluate(robot, dt, model, tasks, tolerance, controller_params=controller_params)
     ready = bool(model is not None and model.ready)
     return dict(layout=layout, robot=robot_name, noisy=noisy, seed=seed, exploration_steps=steps, samples=samples,
                 explored=learned.explored, ready=ready,
@@ -158,14 +160,15 @@ def summarize_search(rows: List[Dict]) -> List[Dict]:
 
 
 def summarize(rows: List[Dict]) -> List[Dict]:
-    """Per setting (exploration budget, explorer hyperparameters, rehearsals and model hyperparameters), over every
+    """Per setting (exploration budget, explorer, rehearsals, model and controller hyperparameters), over every
     cell it ran (layouts x robots x seeds): ready models, mean success (a model that is not ready counts 0), cells at
     >= 0.95, ready models below 0.8 (announced but failing tasks) and the median samples; best first: the choice
     rule takes the first."""
     by_setting: Dict[str, List[Dict]] = {}
     for row in rows:
         key = {'exploration_steps': row['exploration_steps'], 'explorer': row['explorer'],
-               'rehearsals': row.get('rehearsals'), 'model': row.get('model', {}), 'noisy': row.get('noisy', False)}
+               'rehearsals': row.get('rehearsals'), 'model': row.get('model', {}), 'noisy': row.get('noisy', False),
+               'controller': row.get('controller', {})}
         by_setting.setdefault(json.dumps(key, sort_keys=True), []).append(row)
     summary = [dict(**json.loads(key), cells=len(cells), ready=sum(r['ready'] for r in cells),
                     mean_success=round(float(np.mean([r['success'] for r in cells])), 3),
@@ -189,6 +192,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help='RandomExplorer hyperparameter sets to compare, each a JSON object')
     parser.add_argument('--model', nargs='+', type=json.loads, default=[{}],
                         help='SensorManifoldModel hyperparameter sets to compare (e.g. {"heldout_bound": 1.0})')
+    parser.add_argument('--controller', nargs='+', type=json.loads, default=[{}],
+                        help='SwitchingController hyperparameter sets to compare (e.g. {"retrace_history_steps": 5})')
     parser.add_argument('--rehearsals', nargs='+', type=int, default=[None],
                         help="WallAgent rehearsals to compare (default: the agent's own default)")
     parser.add_argument('--noisy', action='store_true',
@@ -241,12 +246,15 @@ def main(argv: Optional[List[str]] = None) -> int:
                 for params in args.explorer:
                     for rehearsals in args.rehearsals:
                         for model_params in args.model:
-                            row = run_cell(layout, robot, seed, args.steps, args.tasks, args.tolerance,
-                                           args.max_samples, model_params=model_params, explorer_params=params,
-                                           rehearsals=rehearsals, noisy=args.noisy)
-                            row.update(explorer=params, rehearsals=rehearsals, model=model_params)
-                            print(json.dumps(row), flush=True)
-                            rows.append(row)
+                            for controller_params in args.controller:
+                                row = run_cell(layout, robot, seed, args.steps, args.tasks, args.tolerance,
+                                               args.max_samples, model_params=model_params, explorer_params=params,
+                                               rehearsals=rehearsals, noisy=args.noisy,
+                                               controller_params=controller_params)
+                                row.update(explorer=params, rehearsals=rehearsals, model=model_params,
+                                           controller=controller_params)
+                                print(json.dumps(row), flush=True)
+                                rows.append(row)
     return _write(args, rows)
 
 

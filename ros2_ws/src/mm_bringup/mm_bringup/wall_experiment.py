@@ -158,21 +158,23 @@ class Learned:
 
 def learn(robot: WheeledRobot, exploration_steps: int, dt: float, random_state: int, start=PAPER_START,
           max_samples: Optional[int] = None, model_params: Optional[dict] = None,
-          explorer_params: Optional[dict] = None, rehearsals: Optional[int] = None) -> Learned:
+          explorer_params: Optional[dict] = None, rehearsals: Optional[int] = None,
+          controller_params: Optional[dict] = None) -> Learned:
     """The graph's exploration and learning in process: the WallAgent explores until it asks for a model, the
     learner fits on every sample so far and the model reaches the agent through its message; a model that is not
     ready sends the agent exploring again (exploration_steps // 4 more) and the learner refits, as sensor_manifold
     does. A ready one is rehearsed (WallAgent.rehearsals; None: the agent's default) on the learner's tracked states,
     as in the graph; a rejected one sends the agent exploring again and the learner refits on everything it has,
     rehearsals included. Until the agent waits for a goal or gives up at its cap of `max_samples` explored steps
-    (default 4 x exploration_steps, the node's default). `model_params` (SensorManifoldModel) and `explorer_params`
-    (RandomExplorer) are hyperparameters under test (mm_bringup.tune_wall); a fit that fails (too little data) is
+    (default 4 x exploration_steps, the node's default). `model_params` (SensorManifoldModel), `explorer_params`
+    (RandomExplorer) and `controller_params` (SwitchingController, for the rehearsals) are hyperparameters under test (mm_bringup.tune_wall); a fit that fails (too little data) is
     announced to the agent as sensor_manifold announces it, and the agent explores more or ends at its cap."""
     max_samples = max_samples or 4 * exploration_steps
     # the cap is the agent's own (the controller node's max_exploration_steps): it stops exploring, not the fit of
     # what was explored, and ends FAILED with the reason
     agent = WallAgent(dt, exploration_steps=exploration_steps, random_state=random_state,
                       max_exploration_steps=max_samples, explorer_params=explorer_params,
+                      controller_params=controller_params,
                       **({} if rehearsals is None else {'rehearsals': rehearsals}))
     pose, bumped = tuple(start), False
     R, U = [], []
@@ -240,12 +242,15 @@ def sensor2_goal_reading(robot: WheeledRobot, goal_pose) -> np.ndarray:
 
 def run_episode(robot: WheeledRobot, model: SensorManifoldModel, start, goal_reading: np.ndarray,
                 tolerance: float = 0.01, max_steps: int = 1500, dt: float = 0.05,
-                max_wheel_speed: float = 6.0, wall_model: Optional[WallModel] = None) -> Episode:
+                max_wheel_speed: float = 6.0, wall_model: Optional[WallModel] = None,
+                controller_params: Optional[dict] = None) -> Episode:
     """One reach of the WallAgent (the switching_controller node's behaviour) from `start` to the goal reading, with
     the learner's StateTracker making the states as the sensor_manifold node does. `wall_model`: the controller's
-    model if not the one the learner's message gives (e.g. a deliberately wrong one)."""
+    model if not the one the learner's message gives (e.g. a deliberately wrong one); `controller_params`:
+    SwitchingController hyperparameters under test (mm_bringup.tune_wall)."""
     agent = WallAgent(dt, exploration_steps=0, max_wheel_speed=max_wheel_speed, tolerance=tolerance,
-                      max_reach_steps=max_steps, rehearsals=0)      # the model under test is used as it is
+                      max_reach_steps=max_steps, rehearsals=0,      # the model under test is used as it is
+                      controller_params=controller_params)
     agent.step(Observation(model=wall_model or agent_model(robot, model)))
     decision = agent.step(Observation(goal=Goal(np.asarray(goal_reading, dtype=float))))
     if not decision.goal_accepted:

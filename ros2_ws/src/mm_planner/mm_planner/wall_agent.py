@@ -123,12 +123,13 @@ class WallAgent:
     ready after this many exploration steps ends FAILED with its reason; None: 4 x exploration_steps, at least 4),
     explorer_params (RandomExplorer hyperparameters that differ from its defaults; the paper's undirected exploration
     is exploration.UNDIRECTED), rehearsals (practice reaches a ready model must pass before it is announced; 0: the
-    learner's readiness decides alone)."""
+    learner's readiness decides alone), controller_params (SwitchingController hyperparameters that differ from its
+    defaults, for every reach and rehearsal)."""
 
     def __init__(self, dt: float, exploration_steps: int = 10000, max_wheel_speed: float = 6.0,
                  tolerance: float = 0.01, max_reach_steps: int = 1500, random_state: Optional[int] = 0,
                  max_exploration_steps: Optional[int] = None, explorer_params: Optional[dict] = None,
-                 rehearsals: int = 5):
+                 rehearsals: int = 5, controller_params: Optional[dict] = None):
         if rehearsals < 0:
             raise ValueError('rehearsals must be >= 0')
         self.dt = dt
@@ -146,6 +147,12 @@ class WallAgent:
         unknown = sorted(set(self.explorer_params) - set(inspect.signature(RandomExplorer).parameters))
         if unknown:
             raise ValueError(f'RandomExplorer has no hyperparameter {", ".join(unknown)}')
+        self.controller_params = dict(controller_params or {})
+        # dt, the wheel-speed limit and the tolerance are the agent's own (and a goal's)
+        settable = set(inspect.signature(SwitchingController).parameters) - {'dt', 'max_wheel_speed', 'tolerance'}
+        unknown = sorted(set(self.controller_params) - settable)
+        if unknown:
+            raise ValueError(f'SwitchingController hyperparameters {", ".join(unknown)} cannot be set here')
         self.explorer = RandomExplorer(**{**self.explorer_params, 'max_wheel_speed': max_wheel_speed,
                                           'random_state': random_state})
         self.controller: Optional[SwitchingController] = None
@@ -272,7 +279,7 @@ class WallAgent:
         problem = self.model.unreadable_goal(reading, goal.tolerance) or (None if self.model.ready else
                                                           f'the model is not ready: {self.model.readiness}')
         tolerance = goal.tolerance or self.tolerance
-        self.controller = SwitchingController(self.dt, max_wheel_speed=self.max_wheel_speed, tolerance=tolerance)
+        self.controller = self._new_controller(tolerance)
         if problem is None:
             try:
                 self.controller.set_goal_from_routes(self.model, reading, self.model.sensor2_noise)
@@ -357,8 +364,7 @@ class WallAgent:
             if r.start is None and in_range:
                 r.start = np.asarray(r.model.region_anchors[int(self.rehearsal_rng.integers(
                     len(r.model.region_anchors)))], dtype=float)
-                self.controller = SwitchingController(self.dt, max_wheel_speed=self.max_wheel_speed,
-                                                      tolerance=self.tolerance)
+                self.controller = self._new_controller(self.tolerance)
                 self._set_phase(ControllerStatus.PHASE_REHEARSING, f'{number}: going to the practised sensor-1 '
                                                                    f'state {_rounded(r.start)}')
             distance = float(np.linalg.norm(r.start - state.coordinates)) if in_range else math.inf
@@ -376,8 +382,7 @@ class WallAgent:
                 return step, distance, tuple(float(v) for v in r.start)
             # There, or as near as it gets: the rehearsal's reach starts here.
             goal = self._rehearsal_goal(r.model)
-            self.controller = SwitchingController(self.dt, max_wheel_speed=self.max_wheel_speed,
-                                                  tolerance=self.tolerance)
+            self.controller = self._new_controller(self.tolerance)
             try:
                 self.controller.set_goal_from_routes(r.model, goal, r.model.sensor2_noise)
             except ValueError as exc:
@@ -407,6 +412,10 @@ class WallAgent:
         if self.phase in REACHING.values():          # a goal was waiting: this state is its first
             return self._reach(state)
         return None, error, target
+
+    def _new_controller(self, tolerance: float) -> SwitchingController:
+        return SwitchingController(self.dt, max_wheel_speed=self.max_wheel_speed, tolerance=tolerance,
+                                   **self.controller_params)
 
     def _rehearsal_goal(self, model: WallModel) -> np.ndarray:
         """A sensor-2 reading seen during the excursions that the model can take as a goal."""
