@@ -1,8 +1,8 @@
-"""mm_bringup wheeled_container: the wheeled loop's three nodes in one process. They are the usual nodes on the
-usual topics (the learning is identical to three processes: tests/test_determinism_under_load.py); here: the
-simulator keeps its own clock whatever `use_sim_time` the command line gives, the two others share one `/clock`
-subscription (and cannot leave it), node-specific parameters reach their node only, and a parameter a node refuses ends the process with one error line and status 2, as a single node's does
-(the nodes created before it log as usual)."""
+"""mm_bringup wheeled_container: the wheeled loop's three nodes in one process. They are the usual nodes on the usual
+topics (the learning is identical to three processes: tests/test_determinism_under_load.py); here: the simulator keeps
+its own clock whatever `use_sim_time` the command line gives, the two others share one `/clock` subscription (and cannot
+leave it), node-specific parameters reach their node only, and a parameter a node refuses ends the process with one
+error line and status 2, as a single node's does (the nodes created before it log as usual)."""
 import subprocess
 
 from mm_common.ros_harness import RosHarness

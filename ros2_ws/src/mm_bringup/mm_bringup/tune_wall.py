@@ -2,10 +2,10 @@
 switching_controller node drives and the same SensorManifoldModel the sensor_manifold node fits.
 
 The learning loop is the graph's: the agent explores `exploration_steps`, the learner fits on every sample, the agent
-takes the model through its message; a model that is not ready, or that failed one of the agent's rehearsals, sends
-the agent exploring `exploration_steps // 4` more, and the learner refits after as many more samples (the nodes'
-rule), until the model is ready and rehearsed or the cap is hit (mm_bringup.wall_experiment.learn, with the
-hyperparameters under test: explorer settings, `--rehearsals`, `--model`, `--controller`). Samples are counted as the nodes count them
+takes the model through its message; a model that is not ready, or that failed one of the agent's rehearsals, sends the
+agent exploring `exploration_steps // 4` more, and the learner refits after as many more samples (the nodes' rule),
+until the model is ready and rehearsed or the cap is hit (mm_bringup.wall_experiment.learn, with the hyperparameters
+under test: explorer settings, `--rehearsals`, `--model`, `--controller`). Samples are counted as the nodes count them
 (every step, extra exploration and rehearsals included); `explored` counts the exploration steps among them.
 
 Seeds: exploration seeds 100-119 and task seed 1103 only; the benchmark (mm_bringup/bench/wall_task.py) uses

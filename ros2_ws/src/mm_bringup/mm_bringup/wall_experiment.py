@@ -163,12 +163,13 @@ def learn(robot: WheeledRobot, exploration_steps: int, dt: float, random_state: 
     """The graph's exploration and learning in process: the WallAgent explores until it asks for a model, the
     learner fits on every sample so far and the model reaches the agent through its message; a model that is not
     ready sends the agent exploring again (exploration_steps // 4 more) and the learner refits, as sensor_manifold
-    does. A ready one is rehearsed (WallAgent.rehearsals; None: the agent's default) on the learner's tracked states,
-    as in the graph; a rejected one sends the agent exploring again and the learner refits on everything it has,
-    rehearsals included. Until the agent waits for a goal or gives up at its cap of `max_samples` explored steps
-    (default 4 x exploration_steps, the node's default). `model_params` (SensorManifoldModel), `explorer_params`
-    (RandomExplorer) and `controller_params` (SwitchingController, for the rehearsals) are hyperparameters under test (mm_bringup.tune_wall); a fit that fails (too little data) is
-    announced to the agent as sensor_manifold announces it, and the agent explores more or ends at its cap."""
+    does. A ready one is rehearsed (WallAgent.rehearsals; None: the agent's default) on the learner's tracked states, as
+    in the graph; a rejected one sends the agent exploring again and the learner refits on everything it has, rehearsals
+    included. Until the agent waits for a goal or gives up at its cap of `max_samples` explored steps (default 4 x
+    exploration_steps, the node's default). `model_params` (SensorManifoldModel), `explorer_params` (RandomExplorer) and
+    `controller_params` (SwitchingController, for the rehearsals) are hyperparameters under test (mm_bringup.tune_wall);
+    a fit that fails (too little data) is announced to the agent as sensor_manifold announces it, and the agent explores
+    more or ends at its cap."""
     max_samples = max_samples or 4 * exploration_steps
     # the cap is the agent's own (the controller node's max_exploration_steps): it stops exploring, not the fit of
     # what was explored, and ends FAILED with the reason

@@ -15,9 +15,9 @@ controller's own plan rolled out in the learned virtual field from where the wal
 coordinates. A stretch that runs past `blind_factor` times that plus `blind_margin_steps` means the virtual space is
 wrong there: the robot replays the commands it drove blind backwards (it knows its own commands; a differential drive
 retraces its path exactly under reversed commands), back to where it last saw the wall (further back along the path
-before the stretch if it is still blind there: a lost reading may have hidden one out of range), and then takes the
-next practised route, or fails with the reason once `max_retries` routes were tried. Durations are in steps and distances
-in readings or grid units: nothing here knows the robot's size.
+before the stretch if it is still blind there: a lost reading may have hidden one out of range), and then takes the next
+practised route, or fails with the reason once `max_retries` routes were tried. Durations are in steps and distances in
+readings or grid units: nothing here knows the robot's size.
 """
 from __future__ import annotations
 
