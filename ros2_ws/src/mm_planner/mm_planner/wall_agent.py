@@ -143,18 +143,11 @@ class WallAgent:
         self.max_wheel_speed = max_wheel_speed
         self.tolerance = tolerance
         self.max_reach_steps = max_reach_steps
-        self.explorer_params = dict(explorer_params or {})
-        unknown = sorted(set(self.explorer_params) - set(inspect.signature(RandomExplorer).parameters))
-        if unknown:
-            raise ValueError(f'RandomExplorer has no hyperparameter {", ".join(unknown)}')
-        self.controller_params = dict(controller_params or {})
-        # dt, the wheel-speed limit and the tolerance are the agent's own (and a goal's)
-        settable = set(inspect.signature(SwitchingController).parameters) - {'dt', 'max_wheel_speed', 'tolerance'}
-        unknown = sorted(set(self.controller_params) - settable)
-        if unknown:
-            raise ValueError(f'SwitchingController hyperparameters {", ".join(unknown)} cannot be set here')
-        self.explorer = RandomExplorer(**{**self.explorer_params, 'max_wheel_speed': max_wheel_speed,
-                                          'random_state': random_state})
+        self.explorer_params = _settable(RandomExplorer, explorer_params, ('max_wheel_speed', 'random_state'))
+        self.controller_params = _settable(SwitchingController, controller_params,
+                                           ('dt', 'max_wheel_speed', 'tolerance'))
+        self.explorer = RandomExplorer(**self.explorer_params, max_wheel_speed=max_wheel_speed,
+                                       random_state=random_state)
         self.controller: Optional[SwitchingController] = None
         self.model: Optional[WallModel] = None
         self.goal: Optional[Goal] = None
@@ -469,6 +462,16 @@ class WallAgent:
         ratio = steps / predicted if predicted else 0.0
         return (f'longest blind stretch {steps} steps, {ratio:.2f} x the route\'s predicted {predicted}, '
                 f'{self.controller.watchdog_trips} watchdog returns')
+
+
+def _settable(cls, params: Optional[dict], agents_own: Tuple[str, ...]) -> dict:
+    """`params` as a dict, refused (ValueError) when it names what `cls` does not take or what the agent sets itself."""
+    params = dict(params or {})
+    refused = sorted(set(params) - (set(inspect.signature(cls).parameters) - set(agents_own)))
+    if refused:
+        raise ValueError(f'{cls.__name__} has no hyperparameter {", ".join(refused)} (or it cannot be set here: '
+                         f'{", ".join(agents_own)} are the agent\'s own)')
+    return params
 
 
 def _rounded(reading) -> list:
