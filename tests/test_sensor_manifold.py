@@ -353,7 +353,10 @@ def test_goal_route_trades_reading_mismatch_for_blind_travel():
     np.testing.assert_array_equal(exit_point, [5.0, 5.0])
     np.testing.assert_allclose(coords, [5.0, 5.0])      # the zero field keeps the virtual coordinates at the exit
     routes = space(2e-3).ranked_routes(goal, 5)         # one route per excursion, best first: the retry order
-    assert [list(exit_point) for exit_point, _ in routes] == [[5.0, 5.0], [1.0, 1.0]]
+    assert [list(route.exit) for route in routes] == [[5.0, 5.0], [1.0, 1.0]]
+    # each route replays its excursion's commands up to its first sensor-2 reading
+    np.testing.assert_array_equal(routes[0].replay, turn[:9])
+    np.testing.assert_array_equal(routes[1].replay, drive)
     with pytest.raises(ValueError, match='route_travel_weight'):
         VirtualSensorSpace(DT, box, route_travel_weight=-1.0)
 
@@ -462,6 +465,8 @@ def test_save_load_round_trip(model, tmp_path, robot):
     np.testing.assert_allclose(loaded.field2_.jacobian(s2), model.field2_.jacobian(s2))
     for a, b in zip(loaded.virtual_.goal_route(s2[0]), model.virtual_.goal_route(s2[0])):
         np.testing.assert_allclose(a, b)
+    for a, b in zip(loaded.virtual_.ranked_routes(s2[0], 4), model.virtual_.ranked_routes(s2[0], 4), strict=True):
+        np.testing.assert_array_equal(a.replay, b.replay)          # the practised commands travel with the model
     np.testing.assert_allclose(loaded.virtual_.step(coords[0], [1.0, -2.0]), model.virtual_.step(coords[0],
                                                                                                    [1.0, -2.0]))
     assert loaded.virtual_.reentry_rms_after_ == model.virtual_.reentry_rms_after_
@@ -525,6 +530,11 @@ def test_load_rejects_missing_corrupt_and_foreign_files(model, tmp_path):
         'all regions unknown': ({'regions1_jacobians': np.full_like(arrays['regions1_jacobians'], np.nan)},
                                 'no sensor-1 region'),
         'string array': ({'grid_mean': np.array(['a', 'b', 'c'])}, 'grid_mean'),
+        'empty route': ({'route_lengths': np.zeros_like(arrays['route_lengths'])}, 'route_lengths'),
+        'route out of range': ({'overlap_route': arrays['overlap_route'] + len(arrays['route_lengths'])},
+                               'overlap_route'),
+        'route commands not finite': ({'route_commands': np.full_like(arrays['route_commands'], np.nan)},
+                                      'route_commands is not finite'),
         'negative noise': ({'meta': np.array(json.dumps({**meta, 'sensor2_noise': [-1.0, 0.0]}))}, 'sensor2_noise'),
         'gain above 1': ({'meta': np.array(json.dumps({**meta, 'sensor1_gain': 1.5}))}, 'sensor1_gain'),
         'zero excursion steps': ({'meta': np.array(json.dumps({**meta, 'mean_excursion_steps': 0.0}))},

@@ -236,6 +236,8 @@ def test_a_model_that_has_not_seen_sensor2_is_refitted_after_more_samples(model_
     blind = SensorManifoldModel.load(path)
     blind.virtual_.overlap_coordinates_ = blind.virtual_.overlap_exits_ = np.zeros((0, 2))
     blind.virtual_.overlap_sensor2_, blind.virtual_.overlap_travel_ = np.zeros((0, 2)), np.zeros(0)
+    blind.virtual_.overlap_route_ = blind.virtual_.route_lengths_ = np.zeros(0, dtype=np.int64)
+    blind.virtual_.route_commands_ = np.zeros((0, 2))
     blind_path = tmp_path / 'blind_model.npz'
     blind.save(blind_path)
     reading = WheeledRobot().read((0.0, 0.6, -math.pi / 2), noisy=False)

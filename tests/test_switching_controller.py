@@ -514,6 +514,62 @@ def test_the_retrace_goes_on_back_along_the_path_before_the_stretch():
     assert not np.any(u) and c.failure.startswith('lost')
 
 
+def test_at_the_route_exit_the_practised_commands_are_replayed():
+    """The route's exit is approached to within exit_tolerance (closer than waypoint_tolerance), then the excursion's
+    commands are replayed as driven: a command faster than max_wheel_speed is slowed and lasts longer on the same
+    arc, so the robot ends where the practised commands took it. The blind stretch is predicted as the replay's
+    length; once the replay is done, the virtual-space plan goes on."""
+    robot = WheeledRobot()
+    field, _ = linear_field()
+    exit_point = np.array([4.0, 4.0])
+    replay = np.array([[7.0, 3.5]] * 3 + [[2.0, 2.0]] * 4 + [[0.0, 0.0]] + [[-1.0, 1.0]] * 2)
+    c = SwitchingController(DT, max_wheel_speed=6.0, waypoint_tolerance=0.3, exit_tolerance=0.05)
+    c.set_goal(np.array([0.17, 0.17]), np.array([9.0, 9.0]), exit_point, replay=replay)
+    J = np.eye(2)
+    u, _, error = c.command(SPACE_SENSOR1, exit_point + 0.1, None, field, None, J)     # within 0.3, not 0.05
+    assert error == pytest.approx(np.hypot(0.1, 0.1)) and np.allclose(u, c.jacobian_step(J, -np.full(2, 0.1)))
+    start = pose = (0.0, 0.6, -1.2)
+    u, _, _ = c.command(SPACE_SENSOR1, exit_point + 0.01, None, field, None, J)
+    driven = [u]
+    while len(driven) < 20:
+        pose, _ = robot.step(pose, driven[-1], DT)
+        if len(driven) == 1:
+            assert c._replay_steps() == 9        # 3 x 7 rad/s take 3.5 steps at 6 (one driven), the stop is skipped
+        u, _, _ = c.command(SPACE_VIRTUAL, exit_point, None, field, None, blind=True)
+        if len(driven) == 1:
+            assert c.predicted_blind == 9
+        if not c._replay and len(driven) >= 10:
+            break
+        driven.append(u)
+    assert len(driven) == 10 and np.max(np.abs(driven)) <= 6.0 + 1e-9
+    practised = start
+    for v in replay:
+        practised, _ = robot.step(practised, v, DT)
+    assert np.allclose(pose, practised, atol=1e-9)
+    # The replay done and still blind: the virtual-space plan toward the route's goal coordinates.
+    assert np.allclose(u, c._best_constant_command(field, exit_point, np.array([9.0, 9.0]), 1.0, None))
+    # The paper's method: no replay, the exit counts as reached at waypoint_tolerance and the plan drives on.
+    paper = SwitchingController(DT, max_wheel_speed=6.0, replay_routes=False)
+    paper.set_goal(np.array([0.17, 0.17]), np.array([9.0, 9.0]), exit_point, replay=replay)
+    paper.command(SPACE_SENSOR1, exit_point + 0.1, None, field, None, J)
+    assert paper.waypoint is None and not paper._replay
+    with pytest.raises(ValueError, match='replay'):
+        c.set_goal(np.array([0.17, 0.17]), np.array([9.0, 9.0]), exit_point, replay=np.full((2, 2), np.nan))
+
+
+def test_a_retry_replays_its_own_route():
+    """The watchdog's retry takes the next practised route with that route's own commands."""
+    field, _ = linear_field()
+    first = (np.array([4.0, 4.0]), np.array([9.0, 9.0]), np.array([[1.0, 2.0]] * 2))
+    second = (np.array([6.0, 2.0]), np.array([8.0, 8.0]), np.array([[-3.0, 3.0]] * 3))
+    c = SwitchingController(DT, stall_steps=2, max_retries=1)
+    c.set_goal(np.array([0.17, 0.17]), first[1], first[0], replay=first[2], alternatives=[second])
+    c._restart_route()
+    assert np.array_equal(c.waypoint, second[0]) and np.array_equal(c._route_replay, second[2])
+    u, _, _ = c.command(SPACE_SENSOR1, second[0], None, field, None, np.eye(2))
+    assert np.array_equal(u, second[2][0])
+
+
 @pytest.fixture(scope='module')
 def paper_robot_and_model():
     """The `paper` layout (no pose where both groups see the wall: every route crosses a blind stretch), a short
@@ -523,22 +579,29 @@ def paper_robot_and_model():
     return robot, SensorManifoldModel(dt).fit(log.readings, log.commands, log.continuous)
 
 
+def leading_nowhere(robot, model) -> WallModel:
+    """The model as the controller reads it, with routes that lead nowhere (as a wrong virtual space would make
+    them), taken as ready: every route's goal shifted a third of the learned space's width toward its far side, where
+    no practised route leads (a mirror image was not enough: directed exploration practises routes all over the
+    middle), and its practised commands replaced by as many of reversing straight away from the exit."""
+    wrong = WallModel.from_msg(model_message(robot, model))
+    low, high = wrong.virtual_bounds
+    far_side = np.where(wrong.overlap_coordinates.mean(axis=0) < (low + high) / 2, 1.0, -1.0)
+    wrong.overlap_coordinates = wrong.overlap_coordinates + far_side * (high - low) / 3
+    wrong.route_commands = np.full_like(wrong.route_commands, -3.0)
+    # This short exploration has too few sensor-2 excursions for the held-out readiness gate (tested in
+    # test_wall_model); what is tested with it is what happens on such routes, so the wrong model is taken as ready.
+    wrong.ready, wrong.readiness = True, ''
+    return wrong
+
+
 def test_the_watchdog_brings_the_robot_back_when_the_route_is_wrong(paper_robot_and_model):
     """A controller whose routes lead nowhere (the overlap's virtual coordinates moved inside the learned space, as a
     wrong virtual space would put them): the robot must not drive blind until the step limit. The blind stretch
     runs past its limit, the robot retraces its commands back into sensor-1 range, tries the next routes and then
     fails with the reason; no blind stretch is longer than the way out and back."""
     robot, model = paper_robot_and_model
-    msg = model_message(robot, model)
-    wrong = WallModel.from_msg(msg)
-    low, high = wrong.virtual_bounds
-    # Every route's goal shifted a third of the learned space's width toward its far side, where no practised
-    # route leads (a mirror image was not enough: directed exploration practises routes all over the middle).
-    far_side = np.where(wrong.overlap_coordinates.mean(axis=0) < (low + high) / 2, 1.0, -1.0)
-    wrong.overlap_coordinates = wrong.overlap_coordinates + far_side * (high - low) / 3
-    # This short exploration has too few sensor-2 excursions for the held-out readiness gate (tested in
-    # test_wall_model); the watchdog is what is tested here, so the wrong model is taken as ready.
-    wrong.ready, wrong.readiness = True, ''
+    wrong = leading_nowhere(robot, model)
     goal_reading = sensor2_goal_reading(robot, (0.0, 0.12, 0.0))
     # Each route costs up to its blind limit out and as much back (about 340 steps here): four need more than the
     # default 1 500 steps.
@@ -608,12 +671,7 @@ def test_a_model_whose_rehearsal_fails_is_rejected_and_explored_on(paper_robot_a
     """Routes that lead nowhere (as in the watchdog test): the first rehearsal fails, the verdict rejects the model
     with the reason, and the agent explores on instead of ever waiting for a goal with it."""
     robot, model = paper_robot_and_model
-    wrong = WallModel.from_msg(model_message(robot, model))
-    low, high = wrong.virtual_bounds
-    far_side = np.where(wrong.overlap_coordinates.mean(axis=0) < (low + high) / 2, 1.0, -1.0)
-    wrong.overlap_coordinates = wrong.overlap_coordinates + far_side * (high - low) / 3
-    wrong.ready, wrong.readiness = True, ''
-    agent, decisions = rehearse(robot, model, wrong, 2)
+    agent, decisions = rehearse(robot, model, leading_nowhere(robot, model), 2)
     verdicts = [d.verdict for d in decisions if d.verdict is not None]
     assert len(verdicts) == 1 and not verdicts[0].accepted, verdicts
     assert 'rehearsal 1/2 to the practised sensor-2 reading' in verdicts[0].reason

@@ -16,7 +16,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
 from std_msgs.msg import Bool, Float64MultiArray
 
-from mm_bringup.wall_experiment import PAPER_START, explore, model_message, run_episode, sensor2_goal_reading
+from mm_bringup.wall_experiment import (PAPER_START, as_published, explore, model_message, run_episode,
+                                        sensor2_goal_reading)
 from mm_manifold.sensor_manifold import SPACE_SENSOR1, SensorManifoldModel, StateTracker
 from mm_planner.switching_controller_node import SwitchingControllerNode
 from mm_sim.wheeled_model import WheeledRobot
@@ -44,6 +45,7 @@ def blind_message(msg):
     """The model message of an exploration that never saw sensor 2 during an excursion."""
     blind = copy.deepcopy(msg)
     blind.overlap_coordinates = blind.overlap_sensor2 = blind.overlap_exits = blind.overlap_travel = []
+    blind.overlap_route = blind.route_lengths = blind.route_commands = []
     blind.ready = False
     return blind
 
@@ -253,6 +255,7 @@ def test_malformed_model_messages_are_rejected_then_a_valid_one_is_used(learned)
                              ('field1_theta', msg.field1_theta[:-1]), ('field2_scale', [0.0, 1.0]),
                              ('grid_nodes', [math.nan] + list(msg.grid_nodes[1:])), ('region_anchors', []),
                              ('overlap_travel', msg.overlap_travel[1:]), ('sensor2_range', [0.3, 0.1]),
+                             ('route_commands', [math.inf] * len(msg.route_commands)),
                              ('virtual_correction', [1e308 * 10] * len(msg.virtual_correction)),
                              ('jacobian_degree', 9), ('grid_rows', 1)):
             broken = copy.deepcopy(msg)
@@ -336,7 +339,8 @@ def test_a_goal_the_model_cannot_map_fails_under_its_own_stamp(learned):
         assert rig.ros.spin_until(lambda: rig.phase() == 'WAITING_FOR_GOAL')
         model = rig.node.agent.model                  # as learned from an exploration without sensor 2
         model.overlap_coordinates = model.overlap_exits = model.overlap_sensor2 = np.zeros((0, 2))
-        model.overlap_travel = np.zeros(0)
+        model.overlap_travel, model.overlap_route = np.zeros(0), np.zeros(0, dtype=np.int64)
+        model.route_lengths, model.route_commands = np.zeros(0, dtype=np.int64), np.zeros((0, 2))
         goal = sensor2_goal_reading(WheeledRobot(), (0.0, 0.2, 0.0))
         for sec in (7, 8):
             response = rig.call(goal, stamp_sec=sec)
@@ -371,11 +375,19 @@ def test_parameter_updates_are_validated():
         rig.ros.close()
 
 
-def test_the_paper_s_undirected_exploration_is_a_parameter_choice():
-    rig = Rig({'exploration_steps': 0, 'exploration_approach_probability': 0.0, 'exploration_excursion_share': 0.0})
+def test_the_paper_s_undirected_exploration_and_blind_crossing_are_parameter_choices():
+    rig = Rig({'exploration_steps': 0, 'exploration_approach_probability': 0.0, 'exploration_excursion_share': 0.0,
+               'replay_practised_routes': False})
     try:
         explorer = rig.node.agent.explorer
         assert explorer.approach_probability == 0.0 and explorer.excursion_share == 0.0
+        assert rig.node.agent._new_controller(0.01).replay_routes is False       # every reach and rehearsal
+        assert not rig.node.set_parameters([Parameter('replay_practised_routes', value=True)])[0].successful
+    finally:
+        rig.ros.close()
+    rig = Rig({'exploration_steps': 0})
+    try:
+        assert rig.node.agent._new_controller(0.01).replay_routes is True
     finally:
         rig.ros.close()
     with pytest.raises(InvalidParameterValueException):          # out of range: refused at start-up
@@ -392,7 +404,7 @@ def test_node_and_offline_runner_command_alike(learned):
     try:
         robot, pose, bumped = WheeledRobot(), PAPER_START, False
         for k in range(steps):
-            r = robot.read(pose)
+            r = as_published(robot.read(pose))   # as the offline runner reads them
             rig.state(k + 1, r[:3], r[3:])
             rig.bumper.publish(Bool(data=bumped))
             assert rig.ros.spin_until(lambda: len(rig.commands) == k + 1)
@@ -411,7 +423,7 @@ def test_node_and_offline_runner_command_alike(learned):
         assert rig.call(goal, tolerance=0.005).accepted
         robot, tracker, pose, last = WheeledRobot(), StateTracker(model), PAPER_START, None
         for k in range(len(episode.commands)):
-            r = robot.read(pose)
+            r = as_published(robot.read(pose))   # as the offline runner reads them
             space, coords, s2, _ = tracker.update(r, last)
             state = ManifoldState(sensor1=[float(v) for v in r[:3]], sensor2=[float(v) for v in r[3:]],
                                   sensor1_range=FRONT_RANGE, active_space=space,
@@ -425,7 +437,7 @@ def test_node_and_offline_runner_command_alike(learned):
         np.testing.assert_array_equal([c.data for c in rig.commands], episode.commands)
         if not episode.reached:
             return
-        r = robot.read(pose)                                     # the final state: the goal is reached
+        r = as_published(robot.read(pose))                       # the final state: the goal is reached
         space, coords, s2, _ = tracker.update(r, last)
         state = ManifoldState(sensor1=[float(v) for v in r[:3]], sensor2=[float(v) for v in r[3:]],
                               sensor1_range=FRONT_RANGE, active_space=space,

@@ -16,7 +16,7 @@ from sensor_msgs.msg import Range
 from std_msgs.msg import Float64MultiArray
 
 from mm_bringup.process_graph import ProcessGraph
-from mm_bringup.wall_experiment import PAPER_GOAL_POSES, PAPER_START, sensor2_goal_reading
+from mm_bringup.wall_experiment import PAPER_GOAL_POSES, PAPER_START, explore, sensor2_goal_reading
 from mm_bringup.wall_graph import WallGraph
 from mm_manifold.sample_assembly import Sample, SampleAssembler
 from mm_manifold.sensor_manifold import SensorManifoldModel
@@ -72,16 +72,10 @@ def test_paper_task_crosses_the_blind_region_and_ends_parallel(run):
     assert spaces[0] == 1 and 2 in spaces and spaces[-1] == 3, spaces
 
 
-def test_grid_relearnt_from_the_bag_is_the_online_grid(run):
-    """Replay: the recorded readings and commands, in the order they were published, go through the sample assembly
-    the node uses (mm_manifold.sample_assembly: steps by stamp, each sample's command, chain breaks where a step did
-    not follow exactly one command, re-sent steps and re-sent commands included), and the model is refitted with the
-    node's hyperparameters. Publication order (the writers' source timestamps, one host clock) is the causal order
-    of the loop; the bag's receive times come from the recorder's own readers, and under load one of its Range
-    readers once ran hundreds of steps apart from the others (a fresh-clone run of 2 December), which in receive
-    order split steps beyond the assembler's window although the node itself had taken every step."""
+def recorded_samples(bag):
+    """The samples the learner took, rebuilt from the bag (see test_grid_relearnt_from_the_bag_is_the_online_grid)."""
     assembler, samples = SampleAssembler(len(SENSOR_NAMES)), []
-    for record in sorted(iter_messages(run['bag']), key=lambda r: r.publish_time_ns):
+    for record in sorted(iter_messages(bag), key=lambda r: r.publish_time_ns):
         topic, data = record.topic, record.data
         if topic.startswith('/wheeled/range/'):
             msg = deserialize_message(data, Range)
@@ -90,6 +84,18 @@ def test_grid_relearnt_from_the_bag_is_the_online_grid(run):
         else:
             events = assembler.command(deserialize_message(data, Float64MultiArray).data)
         samples += [e for e in events if isinstance(e, Sample)]
+    return samples
+
+
+def test_grid_relearnt_from_the_bag_is_the_online_grid(run):
+    """Replay: the recorded readings and commands, in the order they were published, go through the sample assembly
+    the node uses (mm_manifold.sample_assembly: steps by stamp, each sample's command, chain breaks where a step did
+    not follow exactly one command, re-sent steps and re-sent commands included), and the model is refitted with the
+    node's hyperparameters. Publication order (the writers' source timestamps, one host clock) is the causal order
+    of the loop; the bag's receive times come from the recorder's own readers, and under load one of its Range
+    readers once ran hundreds of steps apart from the others (a fresh-clone run of 2 December), which in receive
+    order split steps beyond the assembler's window although the node itself had taken every step."""
+    samples = recorded_samples(run['bag'])
     online = run['model']
     n = online.samples
     assert len(samples) >= n
@@ -101,3 +107,14 @@ def test_grid_relearnt_from_the_bag_is_the_online_grid(run):
     np.testing.assert_allclose(replayed.grid_.nodes_.ravel(), online.grid_nodes, atol=1e-9)
     assert replayed.n_excursions_ == online.excursions
     np.testing.assert_allclose(replayed.virtual_.overlap_sensor2_.ravel(), online.overlap_sensor2, atol=1e-9)
+
+
+def test_the_offline_runner_explores_exactly_as_the_graph(run):
+    """The offline runner (mm_bringup.wall_experiment, which the benchmark's in-process cells and the tuning scripts
+    use) rounds each reading to float32 as sensor_msgs/Range carries it, so on the graph's seed and start its
+    WallAgent sends the graph's exploration commands one for one: offline figures are the graph's."""
+    steps = 3000
+    samples = recorded_samples(run['bag'])
+    graph = np.array([s.command for s in samples[1:steps + 1]], dtype=float)
+    offline = explore(run['robot'], steps, start=PAPER_START, random_state=0).commands
+    np.testing.assert_array_equal(graph, offline)

@@ -48,9 +48,10 @@ def test_round_trip_through_the_wire_evaluates_as_the_learner(model):
     goal = sensor2_goal_reading(WheeledRobot(), (0.0, 0.2, 0.0))
     for a, b in zip(view.goal_route(goal), model.virtual_.goal_route(goal)):
         np.testing.assert_array_equal(a, b)
-    for (wa, ga), (wb, gb) in zip(view.ranked_routes(goal, 4), model.virtual_.ranked_routes(goal, 4)):
-        np.testing.assert_array_equal(wa, wb)
-        np.testing.assert_array_equal(ga, gb)
+    for a, b in zip(view.ranked_routes(goal, 4), model.virtual_.ranked_routes(goal, 4), strict=True):
+        for field_a, field_b in zip(a, b, strict=True):        # exit, goal coordinates, replayed commands
+            np.testing.assert_array_equal(field_a, field_b)
+        assert len(a.replay) >= 1
     np.testing.assert_array_equal(view.virtual_bounds, model.virtual_bounds())
     np.testing.assert_array_equal(view.sensor2_box, model.sensor2_box_)
     np.testing.assert_array_equal(view.sensor2_noise, model.sensor2_noise_)
@@ -80,6 +81,9 @@ def test_round_trip_through_the_wire_evaluates_as_the_learner(model):
     ('goal_neighbors', 0, 'goal_neighbors'),
     ('overlap_sensor2', [0.1, 0.1], 'overlap_sensor2'),
     ('overlap_coordinates', [0.0], 'overlap_coordinates'),
+    ('overlap_route', [0], 'overlap_route'),
+    ('route_lengths', [0], 'route_lengths'),
+    ('route_commands', [0.0], 'route_commands'),
 ])
 def test_malformed_fields_are_refused_with_the_reason(model, field, value, reason):
     msg = model_message(WheeledRobot(), model)
@@ -100,6 +104,7 @@ def announced(model):
 def test_a_model_marked_ready_without_overlap_is_refused(model):
     msg = model_message(WheeledRobot(), announced(model))
     msg.overlap_coordinates = msg.overlap_sensor2 = msg.overlap_exits = msg.overlap_travel = []
+    msg.overlap_route = msg.route_lengths = msg.route_commands = []
     with pytest.raises(ValueError, match='ready'):
         WallModel.from_msg(msg)
     msg.ready = False

@@ -96,7 +96,8 @@ class WallGraph:
     def __init__(self, work_dir: Path, exploration_steps: int = 10000, noise_range_fraction: float = 0.0,
                  dropout: float = 0.0, model_path=None, seed: int = 0,
                  graph: Optional[ProcessGraph] = None, dt: float = 0.05, recorder: Optional[str] = None,
-                 recorded_topics: Sequence[str] = (), sim_params_files: Sequence[Path] = (), composed: bool = False):
+                 recorded_topics: Sequence[str] = (), sim_params_files: Sequence[Path] = (), composed: bool = False,
+                 rehearsals: Optional[int] = None):
         """`recorder`: name of a recorder node already running in `graph`, and `recorded_topics` the topics it must
         have subscribed to before the loop may start. The simulator starts first (it re-publishes its first step until
         a command arrives), then the controller (it only answers states), and the manifold node last, which closes
@@ -106,7 +107,7 @@ class WallGraph:
         either way, kept here as `model_msg`) and, next to it (.samples.csv), its samples. `sim_params_files`: parameter files for wheeled_sim (e.g. wheeled_sim.yaml
         and a sensor layout of mm_sim/layouts), loaded in order before the parameters set here. `composed`: the
         three nodes in one process (mm_bringup wheeled_container; it waits for the recorder in the same way), else
-        one process each."""
+        one process each. `rehearsals`: switching_controller's (None: its default)."""
         self.work_dir = Path(work_dir)
         self.work_dir.mkdir(parents=True, exist_ok=True)
         self.dt = dt
@@ -144,7 +145,8 @@ class WallGraph:
             ('mm_sim', 'wheeled_sim', {'dt': dt, 'noise_range_fraction': noise_range_fraction, 'dropout': dropout,
                                        'random_seed': seed, 'republish_period': 0.5}, sim_topics),
             ('mm_planner', 'switching_controller', {**sim_time, 'dt': dt, 'random_seed': seed,
-                                                    'exploration_steps': exploration_steps},
+                                                    'exploration_steps': exploration_steps,
+                                                    **({} if rehearsals is None else {'rehearsals': rehearsals})},
              ['/wheeled/wheel_velocity_controller/commands', '/wheeled/controller/status']),
             ('mm_manifold', 'sensor_manifold', {**sim_time, 'dt': dt, 'learn_after': exploration_steps,
                                                 'model_path': learner_path, 'samples_path': samples_path,

@@ -126,8 +126,14 @@ def test_tuning_rows_of_several_runs_are_summarized_into_one_choice(tmp_path):
     best, rehearsed, other, smaller_budget = result['summary']
     assert best == dict(exploration_steps=3000, explorer={'excursion_share': 0.3}, rehearsals=0, model={},
                         noisy=False, controller={}, cells=2, ready=2, mean_success=0.925, cells_at_095=1,
-                        ready_below_080=0, median_samples=3500.0)
+                        ready_below_080=0, cells_meeting_item1=0, median_samples=3500.0)
     assert other == dict(exploration_steps=3000, explorer={}, rehearsals=0, model={}, noisy=False, controller={},
-                         cells=2, ready=1, mean_success=0.5, cells_at_095=1, ready_below_080=0, median_samples=7500.0)
+                         cells=2, ready=1, mean_success=0.5, cells_at_095=1, ready_below_080=0, cells_meeting_item1=1,
+                         median_samples=7500.0)
     assert smaller_budget['exploration_steps'] == 2000 and smaller_budget['cells'] == 1
     assert rehearsed['rehearsals'] == 3 and rehearsed['ready_below_080'] == 1
+    # issue 11's item 1 (>= 0.95 within 3 000 samples) ranks first the setting with the most cells meeting it
+    assert tune_wall.main(['--rows', str(first), str(second), '--rule', 'item1', '--out', str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result['summary'][0]['explorer'] == {} and result['summary'][0]['exploration_steps'] == 3000
+    assert result['choice_rule'] == tune_wall.RULES['item1']

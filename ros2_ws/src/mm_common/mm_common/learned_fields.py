@@ -1,14 +1,15 @@
 """Evaluation of the wheeled robot's learned model, shared by the learner (mm_manifold) and the controller
 (mm_planner), which meet through the mm_msgs/SensorManifoldModel message: the polynomial basis of the Jacobian fields,
-the blend of local region Jacobians and the route choice toward a sensor-2 goal. One implementation on both sides, so
-what the controller evaluates from the message is what the learner fitted. Pure numpy, no ROS.
+the blend of local region Jacobians and the route choice toward a sensor-2 goal (with the route's practised commands).
+One implementation on both sides, so what the controller evaluates from the message is what the learner fitted. Pure
+numpy, no ROS.
 """
 from __future__ import annotations
 
 from functools import lru_cache
 from itertools import combinations_with_replacement
 from math import comb
-from typing import List, Optional, Tuple
+from typing import List, NamedTuple, Optional, Tuple
 
 import numpy as np
 
@@ -76,26 +77,45 @@ def blend_jacobians(anchors: np.ndarray, jacobians: np.ndarray, y: np.ndarray, k
     return np.einsum('a,aij->ij', w, jacobians[order]) / w.sum()
 
 
+class Route(NamedTuple):
+    """One practised route to a sensor-2 goal: where its excursion left sensor-1 range (grid coordinates), the
+    virtual coordinates of its readings nearest the goal, and the commands it drove from that exit until sensor 2
+    first saw the wall (n, 2): what the robot replays to cross the blind stretch as it was crossed in practice."""
+    exit: np.ndarray
+    goal: np.ndarray
+    replay: np.ndarray
+
+
+def route_offsets(route_lengths: np.ndarray) -> np.ndarray:
+    """Start of each route's commands in the concatenated route_commands, and the end of the last (r + 1,)."""
+    return np.concatenate([[0], np.cumsum(np.asarray(route_lengths, dtype=np.int64))])
+
+
 def ranked_routes(overlap_sensor2: np.ndarray, overlap_coordinates: np.ndarray, overlap_exits: np.ndarray,
-                  overlap_travel: np.ndarray, sensor2_goal: np.ndarray, n_routes: int, route_travel_weight: float,
-                  goal_neighbors: int) -> List[Tuple[np.ndarray, np.ndarray]]:
-    """[(exit point, goal coordinates)] of up to `n_routes` different practised excursions, best first: each metre of
-    sensor-2 reading mismatch may be traded for 1 / route_travel_weight rad of blind wheel rotation saved. The goal
-    coordinates blend the `goal_neighbors` overlap samples of that excursion nearest the goal reading."""
+                  overlap_travel: np.ndarray, overlap_route: np.ndarray, route_commands: np.ndarray,
+                  route_lengths: np.ndarray, sensor2_goal: np.ndarray, n_routes: int, route_travel_weight: float,
+                  goal_neighbors: int) -> List[Route]:
+    """Up to `n_routes` different practised excursions (`overlap_route`: the route of each overlap sample), best
+    first: each metre of sensor-2 reading mismatch may be traded for 1 / route_travel_weight rad of blind wheel
+    rotation saved. A route's goal coordinates blend the `goal_neighbors` overlap samples of that excursion nearest
+    the goal reading; its replay is its slice of `route_commands` (`route_lengths` commands per route)."""
     if not len(overlap_sensor2):
         raise ValueError('no overlap with sensor 2 has been observed yet')
     mismatch = np.linalg.norm(overlap_sensor2 - np.asarray(sensor2_goal, dtype=float), axis=1)
     cost = mismatch + route_travel_weight * overlap_travel
-    exits, excursion = np.unique(overlap_exits, axis=0, return_inverse=True)
-    excursion = excursion.ravel()
-    best_cost = np.full(len(exits), np.inf)
-    np.minimum.at(best_cost, excursion, cost)
+    route = np.asarray(overlap_route, dtype=np.int64)
+    best_cost = np.full(len(route_lengths), np.inf)
+    np.minimum.at(best_cost, route, cost)
+    offsets = route_offsets(route_lengths)
     routes = []
-    for e in np.argsort(best_cost)[:n_routes]:
-        same = np.flatnonzero(excursion == e)
+    for r in np.argsort(best_cost)[:n_routes]:
+        if not np.isfinite(best_cost[r]):
+            break                                   # a route without overlap samples
+        same = np.flatnonzero(route == r)
         idx = same[np.argsort(mismatch[same])[:goal_neighbors]]
         w = 1.0 / (mismatch[idx] + 1e-4)
-        routes.append((exits[e], (overlap_coordinates[idx] * w[:, None]).sum(axis=0) / w.sum()))
+        routes.append(Route(overlap_exits[same[0]], (overlap_coordinates[idx] * w[:, None]).sum(axis=0) / w.sum(),
+                            route_commands[offsets[r]:offsets[r + 1]]))
     return routes
 
 

@@ -50,4 +50,7 @@ def model_to_msg(model: SensorManifoldModel, sensor2_range: Sequence[float]) -> 
     msg.overlap_sensor2 = _flat(virtual.overlap_sensor2_)
     msg.overlap_exits = _flat(virtual.overlap_exits_)
     msg.overlap_travel = _flat(virtual.overlap_travel_)
+    msg.overlap_route = [int(v) for v in virtual.overlap_route_]
+    msg.route_lengths = [int(v) for v in virtual.route_lengths_]
+    msg.route_commands = _flat(virtual.route_commands_)
     return msg

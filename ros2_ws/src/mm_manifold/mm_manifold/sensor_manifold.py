@@ -31,7 +31,7 @@ from mm_manifold.virtual_space import Excursion, ExtrapolatedField, VirtualSenso
 # The active spaces are the state message's constants (their one home).
 SPACE_NONE, SPACE_SENSOR1 = ManifoldState.SPACE_NONE, ManifoldState.SPACE_SENSOR1
 SPACE_VIRTUAL, SPACE_SENSOR2 = ManifoldState.SPACE_VIRTUAL_SENSOR1, ManifoldState.SPACE_SENSOR2
-FORMAT_VERSION = 6              # 5: sensor1_gain; 6: mean_excursion_steps
+FORMAT_VERSION = 7              # 5: sensor1_gain; 6: mean_excursion_steps; 7: the routes' practised commands
 
 
 def group_in_range(readings: np.ndarray, group) -> np.ndarray:
@@ -226,6 +226,8 @@ class SensorManifoldModel:
             'virtual_correction': self.virtual_.field_.correction,
             'overlap_coordinates': self.virtual_.overlap_coordinates_, 'overlap_sensor2': self.virtual_.overlap_sensor2_,
             'overlap_exits': self.virtual_.overlap_exits_, 'overlap_travel': self.virtual_.overlap_travel_,
+            'overlap_route': self.virtual_.overlap_route_, 'route_commands': self.virtual_.route_commands_,
+            'route_lengths': self.virtual_.route_lengths_,
             'regions1_anchors': self.regions1_.anchors_, 'regions1_jacobians': self.regions1_.jacobians_,
             'regions1_errors': self.regions1_.standard_errors_, 'regions1_support': self.regions1_.support_,
         }
@@ -307,11 +309,15 @@ class SensorManifoldModel:
         f = n_polynomial_features(degree, 2)
         a = rows * cols
         o = len(np.atleast_1d(arrays['overlap_travel']))
+        lengths = arrays['route_lengths']
+        if lengths.dtype.kind != 'i' or lengths.ndim != 1 or np.any(lengths < 1):
+            raise ValueError(f'route_lengths must be integers >= 1, got {lengths.dtype} of shape {lengths.shape}')
         shapes = {'grid_nodes': (rows, cols, 3), 'grid_mean': (3,), 'grid_axes': (3, 3), 'grid_extent': (2, 2),
                   'sensor2_box': (2, 2), 'field1_theta': (f, 2, 2), 'field1_center': (2,), 'field1_scale': (2,),
                   'virtual_correction': (f, 2, 2), 'overlap_coordinates': (o, 2), 'overlap_sensor2': (o, 2),
-                  'overlap_exits': (o, 2), 'overlap_travel': (o,), 'regions1_anchors': (a, 2),
-                  'regions1_jacobians': (a, 2, 2), 'regions1_errors': (a, 2, 2), 'regions1_support': (a,)}
+                  'overlap_exits': (o, 2), 'overlap_travel': (o,), 'route_commands': (int(lengths.sum()), 2),
+                  'regions1_anchors': (a, 2), 'regions1_jacobians': (a, 2, 2), 'regions1_errors': (a, 2, 2),
+                  'regions1_support': (a,)}
         if 'field2_theta' in arrays:
             shapes.update(field2_theta=(f, 2, 2), field2_center=(2,), field2_scale=(2,))
         may_be_nan = {'sensor2_box', 'regions1_jacobians', 'regions1_errors'}   # never seen / unknown region
@@ -323,6 +329,9 @@ class SensorManifoldModel:
             if not np.all(finite):
                 raise ValueError(f'{name} is not finite')
             arrays[name] = value.astype(float)
+        routes = arrays['overlap_route']
+        if routes.dtype.kind != 'i' or routes.shape != (o,) or np.any((routes < 0) | (routes >= len(lengths))):
+            raise ValueError(f'overlap_route must be {o} route indices below {len(lengths)}')
         for name in ('field1_scale', 'field2_scale'):
             if name in arrays and np.any(arrays[name] <= 0):
                 raise ValueError(f'{name} must be > 0')
@@ -367,6 +376,8 @@ class SensorManifoldModel:
         virtual.overlap_sensor2_ = arrays['overlap_sensor2']
         virtual.overlap_exits_ = arrays['overlap_exits']
         virtual.overlap_travel_ = arrays['overlap_travel']
+        virtual.overlap_route_, virtual.route_lengths_ = routes.astype(np.int64), lengths.astype(np.int64)
+        virtual.route_commands_ = arrays['route_commands']
         model.virtual_ = virtual
         return model
 
@@ -387,7 +398,7 @@ def refit_problem(live: Optional['SensorManifoldModel'], new: 'SensorManifoldMod
         return 'the refit cannot map sensor-2 goals, the live model can'
     if new.n_samples_ < live.n_samples_:
         return f'the refit saw {new.n_samples_} samples, the live model {live.n_samples_}'
-    routes = [len(np.unique(m.virtual_.overlap_exits_, axis=0)) for m in (live, new)]
+    routes = [len(m.virtual_.route_lengths_) for m in (live, new)]
     if routes[1] < routes[0] / 2:
         return f'the refit has {routes[1]} practised routes to sensor 2, the live model {routes[0]}'
     pair = np.asarray(continuous[:-1], dtype=bool) & group_in_range(R[:-1], SENSOR2) & group_in_range(R[1:], SENSOR2)

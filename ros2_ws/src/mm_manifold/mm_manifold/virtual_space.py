@@ -14,7 +14,7 @@ from functools import lru_cache
 from typing import List, Optional, Tuple
 
 import numpy as np
-from mm_common.learned_fields import deeper_fallbacks, monomials, polynomial_features, ranked_routes
+from mm_common.learned_fields import Route, deeper_fallbacks, monomials, polynomial_features, ranked_routes
 from scipy.optimize import least_squares
 
 from mm_manifold.compiled import compiled
@@ -236,7 +236,9 @@ class VirtualSensorSpace:
     was chosen on offline explorations and tasks disjoint from the benchmark's, where it took clean success from
     0.68-1.00 to 1.00 on each of three explorations and shortened the median path (0 and 1e-3, 2e-3, 1e-2 tried).
     Learned: field_ (corrected PolynomialJacobianField), reentry_rms_before_/after_, overlap_coordinates_,
-    overlap_sensor2_, overlap_exits_, overlap_travel_, n_excursions_, mean_excursion_steps_ (mean command steps of the
+    overlap_sensor2_, overlap_exits_, overlap_travel_, overlap_route_ (the practised route, i.e. excursion, of each
+    overlap sample), route_commands_ / route_lengths_ (each route's commands from its exit to its first sensor-2
+    reading, concatenated, and their count per route), n_excursions_, mean_excursion_steps_ (mean command steps of the
     fitted excursions: the blind time the re-entry error was measured over; NaN without any).
     """
 
@@ -351,7 +353,7 @@ class VirtualSensorSpace:
         return starts, commands, ends
 
     def _fit_overlap(self, excursions: List[Excursion]) -> None:
-        coords, readings, exits, travel = [], [], [], []
+        coords, readings, exits, travel, route, replays = [], [], [], [], [], []
         with_s2 = [e for e in excursions if e.sensor2 and e.commands]
         if with_s2:
             starts, commands, _ = self._pack(with_s2)
@@ -359,15 +361,21 @@ class VirtualSensorSpace:
             # Wheel rotation that moved the robot (not turned it) since the exit: the blind drive the route needs.
             drive = np.cumsum(np.abs(commands.sum(axis=2)) / 2.0 * self.dt, axis=1)
             for i, e in enumerate(with_s2):
+                replays.append(commands[i, :e.sensor2[0][0]])
                 for n_applied, reading in e.sensor2:
                     coords.append(traj[i, n_applied])
                     readings.append(reading)
                     exits.append(e.start)
                     travel.append(drive[i, n_applied - 1])
+                    route.append(i)
         self.overlap_coordinates_ = np.array(coords).reshape(-1, self.box.shape[1])
         self.overlap_exits_ = np.array(exits).reshape(-1, self.box.shape[1])
         self.overlap_travel_ = np.array(travel, dtype=float)
         self.overlap_sensor2_ = np.array(readings).reshape(len(coords), -1) if coords else np.zeros((0, 2))
+        self.overlap_route_ = np.array(route, dtype=np.int64)
+        du = with_s2[0].commands[0].shape[0] if with_s2 else 2
+        self.route_commands_ = np.concatenate(replays) if replays else np.zeros((0, du))
+        self.route_lengths_ = np.array([len(r) for r in replays], dtype=np.int64)
 
     def predict_reentry(self, excursions: List[Excursion]) -> np.ndarray:
         """Predicted coordinates at the end of each excursion (for validating on held-out excursions)."""
@@ -388,16 +396,17 @@ class VirtualSensorSpace:
         excursion left sensor-1 range, the virtual coordinates of its readings nearest the goal (distance-weighted
         neighbours), and virtual coordinates of practised readings nearer the wall than the goal (ordered by
         closeness to it), to aim at if the goal's coordinates are reached without sensor 2 in sight."""
-        (exit_point, goal), = self.ranked_routes(sensor2_goal, 1)
-        return exit_point, goal, deeper_fallbacks(self.overlap_sensor2_, self.overlap_coordinates_, sensor2_goal,
-                                                  n_fallbacks)
+        route, = self.ranked_routes(sensor2_goal, 1)
+        return route.exit, route.goal, deeper_fallbacks(self.overlap_sensor2_, self.overlap_coordinates_,
+                                                        sensor2_goal, n_fallbacks)
 
-    def ranked_routes(self, sensor2_goal: np.ndarray, n_routes: int) -> List[tuple]:
-        """[(exit point, goal coordinates)] of up to `n_routes` different practised excursions, best first (the
-        cost of goal_route). The later ones are where to try again when the first did not bring sensor 2 in sight."""
+    def ranked_routes(self, sensor2_goal: np.ndarray, n_routes: int) -> List[Route]:
+        """Up to `n_routes` different practised excursions as learned_fields.Route (exit, goal coordinates, replay),
+        best first (the cost of goal_route). The later ones are where to try again when the first did not bring
+        sensor 2 in sight."""
         return ranked_routes(self.overlap_sensor2_, self.overlap_coordinates_, self.overlap_exits_,
-                             self.overlap_travel_, sensor2_goal, n_routes, self.route_travel_weight,
-                             self.goal_neighbors)
+                             self.overlap_travel_, self.overlap_route_, self.route_commands_, self.route_lengths_,
+                             sensor2_goal, n_routes, self.route_travel_weight, self.goal_neighbors)
 
     def step(self, coordinates: np.ndarray, command: np.ndarray) -> np.ndarray:
         """One Euler step of the virtual coordinates under a command."""

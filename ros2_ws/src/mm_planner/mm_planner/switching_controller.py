@@ -4,6 +4,15 @@ The goal reading maps to the closest point of the virtual sensor-1 space (learne
 the robot is driven toward that point in grid coordinates, while it is blind the same happens in the virtual space,
 and once sensor 2 is in range control switches to the sensor-2 readings themselves until they match the goal.
 
+Beyond the paper, the blind stretch is crossed as it was crossed in practice: the route is one practised excursion
+(where it left sensor-1 range and the commands it drove from there until sensor 2 first saw the wall). The robot
+drives to that exit with sensor-1 control, to within `exit_tolerance` grid units, and replays those commands; the
+virtual space tracks the state meanwhile and takes over if the replay ends with sensor 2 still out of sight. A pose
+relative to an infinite wall is fixed by its sensor-1 coordinates, and the same commands from the same pose drive the
+same path, so the crossing no longer depends on how well the extrapolated field predicts far from the range (on the
+tuning seeds the field's own plan missed sensor 2 on 15-40 % of the tasks of some explorations, standing still where
+the field said the goal was). `replay_routes=False` gives the paper's method: the virtual-space plan alone.
+
 In every space the learned Jacobian field J(y) predicts how a command moves the state (y' = J(y) u). Plain
 one-step Jacobian control stalls at the nonholonomic singularity near "parallel to the wall" (no command moves the
 distance-like reading there), so each step evaluates a set of constant commands over a short horizon with the learned
@@ -62,14 +71,17 @@ class SwitchingController:
     may go on back when the robot is still blind where a sensor last saw the wall: a lost reading (NaN) can hide
     one out of range, and such a step is no sighting; 5 of 1 / 5 / 20 / 60 by `mm_bringup.tune_wall --noisy
     --controller` on tuning seeds, mean success 0.747 / 0.850 / 0.835 / 0.837 over 30 noisy cells,
-    results/tune_wall_retrace.json; without lost readings it changes nothing)."""
+    results/tune_wall_retrace.json; without lost readings it changes nothing), replay_routes (cross the blind stretch
+    by replaying the route's practised commands from its exit, module docstring; False: the paper's virtual-space
+    plan alone) and exit_tolerance [grid units] (how close to the route's exit the replay starts)."""
 
     def __init__(self, dt: float, max_wheel_speed: float = 6.0, horizon: int = 12,
                  speed_levels=(1.0, 0.4, 0.12, 0.0), travel_weight: float = 1e-3, tolerance: float = 0.01,
                  settle_steps: int = 4, damping: float = 1e-2, waypoint_tolerance: float = 0.3,
                  turn_speed: float = 0.25, drive_speed: float = 2 / 3, stall_steps: int = 20, max_retries: int = 3,
                  max_settle_steps: int = 30, manoeuvre_travel_weight: float = 1e-2, blind_factor: float = 1.5,
-                 blind_margin_steps: int = 20, blind_prediction_cap: int = 100, retrace_history_steps: int = 5):
+                 blind_margin_steps: int = 20, blind_prediction_cap: int = 100, retrace_history_steps: int = 5,
+                 replay_routes: bool = True, exit_tolerance: float = 0.05):
         if dt <= 0 or max_wheel_speed <= 0 or tolerance <= 0 or horizon < 1:
             raise ValueError('dt, max_wheel_speed, tolerance and horizon must be positive')
         if travel_weight < 0 or manoeuvre_travel_weight < 0:
@@ -81,6 +93,8 @@ class SwitchingController:
         if blind_factor < 1 or blind_margin_steps < 0 or blind_prediction_cap < 1 or retrace_history_steps < 1:
             raise ValueError('need blind_factor >= 1, blind_margin_steps >= 0, blind_prediction_cap >= 1 and '
                              'retrace_history_steps >= 1')
+        if not exit_tolerance > 0:
+            raise ValueError('exit_tolerance must be positive')
         self.dt = dt
         self.max_wheel_speed = max_wheel_speed
         self.horizon = horizon
@@ -97,6 +111,8 @@ class SwitchingController:
         self.blind_margin_steps = blind_margin_steps
         self.blind_prediction_cap = blind_prediction_cap
         self.retrace_history_steps = retrace_history_steps
+        self.replay_routes = bool(replay_routes)
+        self.exit_tolerance = exit_tolerance
         self._plan: Optional[np.ndarray] = None
         levels = sorted({s * max_wheel_speed * sign for s in speed_levels for sign in (-1, 1)})
         self.candidates = np.array(list(product(levels, levels)), dtype=float)
@@ -127,13 +143,16 @@ class SwitchingController:
 
     def set_goal(self, sensor2_goal: np.ndarray, goal_coordinates: np.ndarray,
                  waypoint: Optional[np.ndarray] = None, fallbacks: Optional[np.ndarray] = None,
-                 sensor2_noise: Optional[np.ndarray] = None, alternatives=()) -> None:
+                 sensor2_noise: Optional[np.ndarray] = None, alternatives=(),
+                 replay: Optional[np.ndarray] = None) -> None:
         """`waypoint`: where in sensor-1 range the practised excursions toward this goal left the range; the robot
-        first goes there with sensor-1 control, then aims at the goal's virtual coordinates. `fallbacks`: virtual
-        coordinates to aim at next if the goal's are reached while sensor 2 still does not see the wall (the virtual
-        estimate has drifted). `alternatives`: further (waypoint, goal coordinates) routes, taken in turn on each
-        retry (the same route again when there are none). `sensor2_noise`: learned std of the sensor-2 reading
-        noise; the stop decision never trusts a few readings to be less noisy than that."""
+        first goes there with sensor-1 control, then aims at the goal's virtual coordinates. `replay` (n, 2): the
+        commands that excursion drove from the waypoint until sensor 2 saw the wall, replayed from there (with
+        replay_routes). `fallbacks`: virtual coordinates to aim at next if the goal's are reached while sensor 2
+        still does not see the wall (the virtual estimate has drifted). `alternatives`: further (waypoint, goal
+        coordinates[, replay]) routes, taken in turn on each retry (the same route again when there are none).
+        `sensor2_noise`: learned std of the sensor-2 reading noise; the stop decision never trusts a few readings
+        to be less noisy than that."""
         sensor2_goal = np.asarray(sensor2_goal, dtype=float)
         goal_coordinates = np.asarray(goal_coordinates, dtype=float)
         if sensor2_goal.ndim != 1 or not len(sensor2_goal) or goal_coordinates.ndim != 1:
@@ -148,8 +167,11 @@ class SwitchingController:
         self.waypoint = None if waypoint is None else np.asarray(waypoint, dtype=float)
         self.fallbacks = [] if fallbacks is None else [np.asarray(f, dtype=float) for f in fallbacks]
         self._fallbacks = list(self.fallbacks)
-        self._routes = [(self.waypoint, self.goal_coordinates)] + [
-            (np.asarray(w, dtype=float), np.asarray(g, dtype=float)) for w, g in alternatives]
+        self._routes = [(self.waypoint, self.goal_coordinates, self._checked_replay(replay))] + [
+            (np.asarray(route[0], dtype=float), np.asarray(route[1], dtype=float),
+             self._checked_replay(route[2] if len(route) > 2 else None)) for route in alternatives]
+        self._route_replay = self._routes[0][2]   # the current route's practised commands (None: none)
+        self._replay: list = []                   # [command, seconds] runs of the replay under way
         self._seen_in_range = []           # grid coordinates measured in this episode with sensor 1 in range
         self.retries = 0
         self.best_error, self.stalled_steps = np.inf, 0
@@ -170,10 +192,19 @@ class SwitchingController:
         """set_goal with the learned model's route to the goal reading (`virtual_space` has goal_route and
         ranked_routes, e.g. mm_planner.wall_model.WallModel) and, for the retries, its next-best routes. Raises
         ValueError when the space cannot map the reading (no overlap with sensor 2 learned)."""
-        waypoint, coordinates, fallbacks = virtual_space.goal_route(sensor2_goal)
-        alternatives = virtual_space.ranked_routes(sensor2_goal, 1 + self.max_retries)[1:]
-        self.set_goal(sensor2_goal, coordinates, waypoint, fallbacks, sensor2_noise=sensor2_noise,
-                      alternatives=alternatives)
+        _, _, fallbacks = virtual_space.goal_route(sensor2_goal)
+        best, *alternatives = virtual_space.ranked_routes(sensor2_goal, 1 + self.max_retries)
+        self.set_goal(sensor2_goal, best.goal, best.exit, fallbacks, sensor2_noise=sensor2_noise,
+                      alternatives=alternatives, replay=best.replay)
+
+    def _checked_replay(self, replay: Optional[np.ndarray]) -> Optional[np.ndarray]:
+        """A route's practised commands as (n, 2) finite floats, or None (none, or replay_routes off)."""
+        if replay is None or not self.replay_routes:
+            return None
+        replay = np.asarray(replay, dtype=float)
+        if replay.ndim != 2 or replay.shape[1] != 2 or not np.all(np.isfinite(replay)):
+            raise ValueError(f'a route replay must be finite (n, 2) wheel commands, got shape {replay.shape}')
+        return replay if len(replay) else None
 
     @property
     def target(self) -> Optional[np.ndarray]:
@@ -310,10 +341,14 @@ class SwitchingController:
 
     # --- blind watchdog -----------------------------------------------------------------------------------------
     def _start_blind_stretch(self, coordinates: Optional[np.ndarray], virtual_field, bounds) -> None:
-        """The wall was just lost: predict the stretch (the plan's rollout to the route's goal) and set its limit."""
-        self.predicted_blind = (self.blind_prediction_cap if coordinates is None
-                                else self.predict_blind_steps(virtual_field, np.asarray(coordinates, dtype=float),
-                                                              bounds))
+        """The wall was just lost: predict the stretch (the replay's remaining steps while one is under way, else
+        the plan's rollout to the route's goal) and set its limit."""
+        if self._replay:
+            self.predicted_blind = min(self.blind_prediction_cap, max(1, self._replay_steps()))
+        else:
+            self.predicted_blind = (self.blind_prediction_cap if coordinates is None
+                                    else self.predict_blind_steps(virtual_field, np.asarray(coordinates, dtype=float),
+                                                                  bounds))
         self.blind_limit = int(math.ceil(self.blind_factor * self.predicted_blind)) + self.blind_margin_steps
 
     def predict_blind_steps(self, virtual_field, coordinates: np.ndarray, bounds: Optional[np.ndarray]) -> int:
@@ -356,20 +391,45 @@ class SwitchingController:
     def _retrace(self):
         """Next command back along the path (see _remember): the last run reversed, sped up to max_wheel_speed (the
         same arc in less time). Nothing left to retrace and still blind: the wall cannot be found again."""
-        while self._path and not np.any(self._path[-1][0]):
-            self._path.pop()
-        if not self._path:
+        u = self._follow(self._path, backward=True)
+        if u is None:
             self.failure = (f'lost: blind for {self.blind_steps} steps and the retraced path did not find the wall '
                             'again')
             return np.zeros(2), False, float('nan')
-        run = self._path[-1]
+        return u, False, float('nan')
+
+    def _follow(self, runs: list, backward: bool) -> Optional[np.ndarray]:
+        """Next command along [command, seconds] `runs`, consumed as it goes (None when none is left); runs that
+        stand still are skipped (they move nothing). Backward: the last run reversed and sped up to
+        max_wheel_speed; forward: the first run as driven, slowed to max_wheel_speed if it was faster. Either way a
+        run keeps its arc (both wheels scaled alike) and takes its time at the new speed."""
+        at = -1 if backward else 0
+        while runs and not np.any(runs[at][0]):
+            runs.pop(at)
+        if not runs:
+            return None
+        run = runs[at]
         u, seconds = run
-        speedup = self.max_wheel_speed / float(np.max(np.abs(u)))
-        covered = min(seconds, speedup * self.dt)
+        speed = self.max_wheel_speed / float(np.max(np.abs(u)))
+        covered = min(seconds, (speed if backward else min(1.0, speed)) * self.dt)
         run[1] -= covered
         if run[1] <= 1e-12:
-            self._path.pop()
-        return -u * (covered / self.dt), False, float('nan')
+            runs.pop(at)
+        return (-u if backward else u) * (covered / self.dt)
+
+    def _start_replay(self) -> None:
+        """At the route's exit: replay its practised commands (equal consecutive ones merged into runs)."""
+        self._replay = []
+        for u in self._route_replay:
+            if self._replay and np.array_equal(self._replay[-1][0], u):
+                self._replay[-1][1] += self.dt
+            else:
+                self._replay.append([u.copy(), self.dt])
+
+    def _replay_steps(self) -> int:
+        """Steps the replay under way still takes (runs faster than max_wheel_speed take longer)."""
+        return sum(int(math.ceil(seconds * max(1.0, float(np.max(np.abs(u))) / self.max_wheel_speed) / self.dt - 1e-9))
+                   for u, seconds in self._replay if np.any(u))
 
     def _end_blind_stretch(self, space: int) -> None:
         """A sensor sees the wall again. After a retrace back to sensor 1, take the next practised route (or fail:
@@ -387,7 +447,8 @@ class SwitchingController:
     def _restart_route(self) -> None:
         """Start again from the next practised route's exit (sensor 1 re-localises on re-entry)."""
         self.retries += 1
-        self.waypoint, self.goal_coordinates = self._routes[self.retries % len(self._routes)]
+        self.waypoint, self.goal_coordinates, self._route_replay = self._routes[self.retries % len(self._routes)]
+        self._replay = []
         self.fallbacks = list(self._fallbacks)
         self.best_error, self.stalled_steps = np.inf, 0
         if self.fallbacks and self._refuted(self.goal_coordinates):
@@ -397,6 +458,7 @@ class SwitchingController:
                  virtual_field, sensor2_field, sensor1_jacobian: Optional[np.ndarray],
                  bounds: Optional[np.ndarray], sensor2_box: Optional[np.ndarray], sensor2_measured: bool):
         if space == SPACE_SENSOR2:
+            self._replay = []             # crossed: sensor-2 control from here, even if sensor 2 loses the wall
             error = np.abs(sensor2 - self.goal_sensor2)
             if self.settled or np.all(error < self.tolerance):
                 if not sensor2_measured:      # hold still until sensor 2 itself confirms
@@ -427,20 +489,32 @@ class SwitchingController:
             return u, False, float(error.max())
         self.settled, self._settle_readings = 0, []
         self._plan = None
+        u = self._follow(self._replay, backward=False)
+        if u is not None:                 # crossing as practised (module docstring)
+            return u, False, float('nan')
         if coordinates is None:
             return np.zeros(2), False, float('nan')
         coordinates = np.asarray(coordinates, dtype=float)
         if space == SPACE_SENSOR1:
             self._seen_in_range.append(coordinates)
         error = float(np.linalg.norm(self.target - coordinates))
-        if error < self.best_error - 0.05:
+        # A replay needs the practised exit itself: approached more closely, and given up sooner when stuck.
+        replaying = self.waypoint is not None and self._route_replay is not None
+        if error < self.best_error - (min(0.05, self.exit_tolerance / 5) if replaying else 0.05):
             self.best_error, self.stalled_steps = error, 0
         else:
             self.stalled_steps += 1
-        if self.waypoint is not None and (error < self.waypoint_tolerance or self.stalled_steps > 3 * self.stall_steps):
+        if self.waypoint is not None and (
+                error < (self.exit_tolerance if replaying else self.waypoint_tolerance)
+                or self.stalled_steps > (1 if replaying else 3) * self.stall_steps):
             # At the practised exit (or unable to get closer, e.g. noisy readings at the range edge): go for the goal.
             self.waypoint = None
             self.best_error, self.stalled_steps = np.inf, 0
+            if replaying:
+                self._start_replay()
+                u = self._follow(self._replay, backward=False)
+                if u is not None:
+                    return u, False, float('nan')
         if space == SPACE_SENSOR1 and sensor1_jacobian is not None and self.waypoint is not None:
             step_error = self.waypoint - coordinates
             return self.jacobian_step(sensor1_jacobian, step_error), False, float(np.linalg.norm(step_error))

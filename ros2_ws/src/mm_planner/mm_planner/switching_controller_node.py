@@ -31,6 +31,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Bool, Float64MultiArray
 
 from mm_planner.exploration import RandomExplorer
+from mm_planner.switching_controller import SwitchingController
 from mm_planner.wall_agent import Decision, FitFailure, Goal, Observation, WallAgent
 from mm_planner.wall_model import WallModel
 
@@ -101,11 +102,15 @@ class SwitchingControllerNode(Node):
                              'Practice reaches to practised sensor-2 readings a model the learner found ready must '
                              'pass before it is announced (0: the learner\'s held-out check decides alone); fixed at '
                              'start-up', min_value=0, max_value=100, read_only=True)
+        replay = declare(self, 'replay_practised_routes',
+                         inspect.signature(SwitchingController).parameters['replay_routes'].default,
+                         'Cross the blind stretch by replaying the chosen practised excursion\'s commands from its '
+                         'exit (false: the paper\'s virtual-space plan alone); fixed at start-up', read_only=True)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.agent = WallAgent(self.dt, exploration_steps, max_wheel_speed, tolerance, max_reach_steps,
                                random_state=seed, max_exploration_steps=max_exploration or None,
                                explorer_params={'approach_probability': approach, 'excursion_share': share},
-                               rehearsals=rehearsals)
+                               rehearsals=rehearsals, controller_params={'replay_routes': replay})
 
         self.bumped = False
         # The bumper reading of a step travels on its own topic and may arrive after the state: in lockstep the

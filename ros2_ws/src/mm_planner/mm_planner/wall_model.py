@@ -11,8 +11,8 @@ import math
 from typing import List, Optional, Tuple
 
 import numpy as np
-from mm_common.learned_fields import (PolynomialField, blend_jacobians, deeper_fallbacks, n_polynomial_features,
-                                      ranked_routes)
+from mm_common.learned_fields import (PolynomialField, Route, blend_jacobians, deeper_fallbacks,
+                                      n_polynomial_features, ranked_routes)
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
 
 MAX_DEGREE = 4          # the learner's jacobian_degree parameter range
@@ -45,7 +45,7 @@ def _ordered_box(box: np.ndarray, name: str) -> np.ndarray:
 class WallModel:
     """Attributes: dt, ready, readiness (why not ready), held-out errors and their limit, samples, virtual_field, sensor2_field (None until learned), virtual_bounds (2, 2),
     sensor2_box (2, 2, NaN when sensor 2 was never seen), sensor2_noise (2,), sensor2_range (2,), region_anchors,
-    region_jacobians and the overlap arrays of the routes."""
+    region_jacobians, the overlap arrays and the routes' practised commands."""
 
     @classmethod
     def from_msg(cls, msg: ModelMsg) -> 'WallModel':
@@ -105,6 +105,14 @@ class WallModel:
         self.overlap_sensor2 = _array(msg, 'overlap_sensor2', (o, 2))
         self.overlap_exits = _array(msg, 'overlap_exits', (o, 2))
         self.overlap_travel = _array(msg, 'overlap_travel', (o,))
+        self.route_lengths = np.asarray(msg.route_lengths, dtype=np.int64)
+        if np.any(self.route_lengths < 1):
+            raise ValueError('route_lengths must be >= 1')
+        self.overlap_route = np.asarray(msg.overlap_route, dtype=np.int64)
+        if self.overlap_route.shape != (o,) or np.any(self.overlap_route >= len(self.route_lengths)):
+            raise ValueError(f'overlap_route must hold {o} route indices below {len(self.route_lengths)}, got '
+                             f'{len(self.overlap_route)}')
+        self.route_commands = _array(msg, 'route_commands', (int(self.route_lengths.sum()), 2))
         e, r, limit = msg.heldout_sensor2_error, msg.heldout_reentry_error, msg.heldout_limit
         if not (e >= 0 and not math.isnan(e)) or not (math.isnan(r) or (math.isfinite(r) and r >= 0)):
             raise ValueError(f'held-out errors {e}, {r} must be >= 0 (sensor 2: inf when unknown, re-entry: NaN)')
@@ -129,15 +137,17 @@ class WallModel:
         """Local Jacobian of the grid coordinates at the current reading (blend of the nearest regions)."""
         return blend_jacobians(self.region_anchors, self.region_jacobians, coordinates)
 
-    def ranked_routes(self, sensor2_goal: np.ndarray, n_routes: int) -> List[tuple]:
+    def ranked_routes(self, sensor2_goal: np.ndarray, n_routes: int) -> List[Route]:
+        """Up to `n_routes` practised routes (exit, goal coordinates, replay) to a sensor-2 goal reading, best first."""
         return ranked_routes(self.overlap_sensor2, self.overlap_coordinates, self.overlap_exits, self.overlap_travel,
-                             sensor2_goal, n_routes, self.route_travel_weight, self.goal_neighbors)
+                             self.overlap_route, self.route_commands, self.route_lengths, sensor2_goal, n_routes,
+                             self.route_travel_weight, self.goal_neighbors)
 
     def goal_route(self, sensor2_goal: np.ndarray, n_fallbacks: int = 5):
         """(exit point, goal coordinates, fallbacks) of the best practised route to a sensor-2 goal reading."""
-        (exit_point, goal), = self.ranked_routes(sensor2_goal, 1)
-        return exit_point, goal, deeper_fallbacks(self.overlap_sensor2, self.overlap_coordinates, sensor2_goal,
-                                                  n_fallbacks)
+        route, = self.ranked_routes(sensor2_goal, 1)
+        return route.exit, route.goal, deeper_fallbacks(self.overlap_sensor2, self.overlap_coordinates, sensor2_goal,
+                                                        n_fallbacks)
 
     def unreadable_goal(self, reading: np.ndarray, tolerance: float = 0.0) -> Optional[str]:
         """Why sensor 2 could never show this reading (outside the range its sensors read), or a tolerance as wide
