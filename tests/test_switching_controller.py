@@ -557,6 +557,21 @@ def test_at_the_route_exit_the_practised_commands_are_replayed():
         c.set_goal(np.array([0.17, 0.17]), np.array([9.0, 9.0]), exit_point, replay=np.full((2, 2), np.nan))
 
 
+def test_stuck_far_from_the_exit_the_virtual_space_plan_goes_on_instead_of_the_replay():
+    """The approach to the exit stalls (no progress for 3 x stall_steps) farther than waypoint_tolerance from it: the
+    practised commands from there would lead elsewhere, so no replay; the robot aims at the route's goal
+    coordinates as without one."""
+    field, _ = linear_field()
+    exit_point, goal = np.array([4.0, 4.0]), np.array([9.0, 9.0])
+    c = SwitchingController(DT, stall_steps=2)
+    c.set_goal(np.array([0.17, 0.17]), goal, exit_point, replay=np.array([[1.0, 2.0]] * 3))
+    stuck = exit_point + 1.0
+    for _ in range(3 * 2 + 2):                 # the robot does not move
+        u, _, _ = c.command(SPACE_SENSOR1, stuck, None, field, None, np.eye(2))
+    assert c.waypoint is None and not c._replay and not np.array_equal(u, [1.0, 2.0])
+    assert np.array_equal(c.target, goal)
+
+
 def test_a_retry_replays_its_own_route():
     """The watchdog's retry takes the next practised route with that route's own commands."""
     field, _ = linear_field()

@@ -76,8 +76,11 @@ def test_array_problem_says_what_is_wrong():
 
 
 _BUSY_NODE = r'''
+import faulthandler
+import signal
 import sys
 import numpy     # starts BLAS threads before run_node: a signal may be delivered to one of them
+faulthandler.register(signal.SIGUSR1, all_threads=True)     # the test asks for every thread's stack if it hangs
 from std_msgs.msg import Float64MultiArray
 from rclpy.node import Node
 from mm_common.node_utils import run_node
@@ -117,9 +120,13 @@ def test_run_node_exits_cleanly_on_signals_mid_spin(sig, tmp_path):
         try:
             out, err = proc.communicate(timeout=10)
         except subprocess.TimeoutExpired:
+            # Where it hangs (seen once in about 500 runs, 6 December, a fresh-clone run under load): every thread's
+            # Python stack, which faulthandler writes even while the main thread is blocked in C.
+            proc.send_signal(signal.SIGUSR1)
+            time.sleep(1.0)
             os.killpg(proc.pid, signal.SIGKILL)
             out, err = proc.communicate()
-            failures.append((attempt, 'hung', err[-500:]))
+            failures.append((attempt, 'hung', err[-3000:]))
             continue
         if proc.returncode != 0 or 'Traceback' in err:
             failures.append((attempt, proc.returncode, err[-800:]))

@@ -7,7 +7,8 @@ and once sensor 2 is in range control switches to the sensor-2 readings themselv
 Beyond the paper, the blind stretch is crossed as it was crossed in practice: the route is one practised excursion
 (where it left sensor-1 range and the commands it drove from there until sensor 2 first saw the wall). The robot
 drives to that exit with sensor-1 control, to within `exit_tolerance` grid units, and replays those commands; the
-virtual space tracks the state meanwhile and takes over if the replay ends with sensor 2 still out of sight. A pose
+virtual space tracks the state meanwhile and takes over if the replay ends with sensor 2 still out of sight, or if
+the approach got stuck farther than `waypoint_tolerance` from the exit (from there the commands would lead elsewhere). A pose
 relative to an infinite wall is fixed by its sensor-1 coordinates, and the same commands from the same pose drive the
 same path, so the crossing no longer depends on how well the extrapolated field predicts far from the range (on the
 tuning seeds the field's own plan missed sensor 2 on 15-40 % of the tasks of some explorations, standing still where
@@ -498,7 +499,7 @@ class SwitchingController:
         if space == SPACE_SENSOR1:
             self._seen_in_range.append(coordinates)
         error = float(np.linalg.norm(self.target - coordinates))
-        # A replay needs the practised exit itself: approached more closely, and given up sooner when stuck.
+        # A replay needs the practised exit itself: approached more closely (progress counted in finer steps).
         replaying = self.waypoint is not None and self._route_replay is not None
         if error < self.best_error - (min(0.05, self.exit_tolerance / 5) if replaying else 0.05):
             self.best_error, self.stalled_steps = error, 0
@@ -506,11 +507,13 @@ class SwitchingController:
             self.stalled_steps += 1
         if self.waypoint is not None and (
                 error < (self.exit_tolerance if replaying else self.waypoint_tolerance)
-                or self.stalled_steps > (1 if replaying else 3) * self.stall_steps):
-            # At the practised exit (or unable to get closer, e.g. noisy readings at the range edge): go for the goal.
+                or self.stalled_steps > 3 * self.stall_steps):
+            # At the practised exit (or unable to get closer, e.g. noisy readings at the range edge): go for the goal,
+            # as practised from near the exit; from farther (stuck on the way) the practised commands would lead
+            # elsewhere, and the virtual-space plan goes on instead.
             self.waypoint = None
             self.best_error, self.stalled_steps = np.inf, 0
-            if replaying:
+            if replaying and error < self.waypoint_tolerance:
                 self._start_replay()
                 u = self._follow(self._replay, backward=False)
                 if u is not None:
