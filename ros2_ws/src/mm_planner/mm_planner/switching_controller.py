@@ -5,14 +5,14 @@ the robot is driven toward that point in grid coordinates, while it is blind the
 and once sensor 2 is in range control switches to the sensor-2 readings themselves until they match the goal.
 
 Beyond the paper, the blind stretch is crossed as it was crossed in practice: the route is one practised excursion
-(where it left sensor-1 range and the commands it drove from there until sensor 2 first saw the wall). The robot
-drives to that exit with sensor-1 control, to within `exit_tolerance` grid units, and replays those commands; the
-virtual space tracks the state meanwhile and takes over if the replay ends with sensor 2 still out of sight, or if
-the approach got stuck farther than `waypoint_tolerance` from the exit (from there the commands would lead elsewhere). A pose
-relative to an infinite wall is fixed by its sensor-1 coordinates, and the same commands from the same pose drive the
-same path, so the crossing no longer depends on how well the extrapolated field predicts far from the range (on the
-tuning seeds the field's own plan missed sensor 2 on 15-40 % of the tasks of some explorations, standing still where
-the field said the goal was). `replay_routes=False` gives the paper's method: the virtual-space plan alone.
+(where it left sensor-1 range and the commands it drove from there until sensor 2 first saw the wall). The robot drives
+to that exit with sensor-1 control, to within `exit_tolerance` grid units, and replays those commands; the virtual space
+tracks the state meanwhile and takes over if the replay ends with sensor 2 still out of sight, or if the approach got
+stuck farther than `waypoint_tolerance` from the exit (from there the commands would lead elsewhere). A pose relative to
+an infinite wall is fixed by its sensor-1 coordinates, and the same commands from the same pose drive the same path, so
+the crossing no longer depends on how well the extrapolated field predicts far from the range (on the tuning seeds the
+field's own plan missed sensor 2 on 15-40 % of the tasks of some explorations, standing still where the field said the
+goal was). `replay_routes=False` gives the paper's method: the virtual-space plan alone.
 
 In every space the learned Jacobian field J(y) predicts how a command moves the state (y' = J(y) u). Plain
 one-step Jacobian control stalls at the nonholonomic singularity near "parallel to the wall" (no command moves the

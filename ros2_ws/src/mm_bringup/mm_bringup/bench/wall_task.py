@@ -5,11 +5,11 @@ simulator's default layout, `overlap`, is the easier problem and is measured in 
 Headline, through the ROS graph (wheeled_sim in lockstep + sensor_manifold + switching_controller as processes,
 mm_bringup.wall_graph): the default robot on `paper`, 40 random tasks plus the paper's task per cell: issue 11's item 1
 on all five exploration seeds with its sample-bound setting (wall_experiment.SAMPLE_BOUND_EXPLORATION steps and
-SAMPLE_BOUND_REHEARSALS rehearsals), and 10 000 steps on one seed. Matrix, in process (mm_bringup.wall_experiment drives the same WallAgent
-class as the switching_controller node, and the model reaches it through the same message; a node test checks both
-command alike): layouts {paper, overlap} x robots {default, 1.5x scaled, dt 0.1} x exploration seeds x budgets
-{3 000, 10 000}, and the same on `paper` with 1 % noise and 5 % dropout. Precision (issue 11, item 4; `precision`):
-the headline's in-process cells (paper, default robot, 3 000 steps, the five seeds) with a 2 mm tolerance.
+SAMPLE_BOUND_REHEARSALS rehearsals), and 10 000 steps on one seed. Matrix, in process (mm_bringup.wall_experiment drives
+the same WallAgent class as the switching_controller node, and the model reaches it through the same message; a node
+test checks both command alike): layouts {paper, overlap} x robots {default, 1.5x scaled, dt 0.1} x exploration seeds x
+budgets {3 000, 10 000}, and the same on `paper` with 1 % noise and 5 % dropout. Precision (issue 11, item 4;
+`precision`): the headline's in-process cells (paper, default robot, 3 000 steps, the five seeds) with a 2 mm tolerance.
 
 Each task: a start where sensor 1 sees the wall, a goal pose close to the wall where only sensor 2 does, shown to the
 robot as its sensor-2 reading; tolerance 10 mm. Scoring uses ground truth (evaluation only):
@@ -252,8 +252,8 @@ def run_graph_cell(work_dir: Path, budget: int, seed: int, n_tasks: int, layout:
             paper = run_graph_task(graph, robot, PAPER_START, PAPER_GOAL_POSES[layout], PAPER_TOLERANCE)
             episodes = [run_graph_task(graph, robot, start, goal_pose, TOLERANCE) for start, goal_pose in tasks]
     cell = {'layout': layout, 'robot': 'default', 'exploration_seed': seed, 'exploration_budget': budget,
-            'rehearsals': rehearsals if rehearsals is not None else 'default', 'task_seed': task_seed, 'samples': int(samples), 'learning_wall_seconds': round(learning_seconds, 1),
-            'learning_failure': failure,
+            'rehearsals': rehearsals if rehearsals is not None else 'default', 'task_seed': task_seed,
+            'samples': int(samples), 'learning_wall_seconds': round(learning_seconds, 1), 'learning_failure': failure,
             'stalled_episodes': sum(e['detail'].startswith('stalled') for e in episodes + [paper]),
             'seconds_per_episode': float(np.mean([e['wall_seconds'] for e in episodes])), 'paper_task': paper}
     cell.update(summarise(episodes))
