@@ -106,6 +106,16 @@ def test_local_pca_dimension_rejects_too_few_or_non_finite_samples():
 
 def test_sensor1_readings_are_two_dimensional(model):
     assert model.dimension_ == 2          # three front readings, but the robot's (distance, angle) state is 2-D
+    assert model.unsupported_dimension() is None
+
+
+def test_a_dimension_the_grid_does_not_have_is_reported_as_unsupported(model):
+    """Issue 11, item 5: the detected dimension drives the grid or is reported as unsupported; the grid is 2-D, so
+    another dimension is reported (the node logs it at each fit) and the 2-D grid is fitted anyway."""
+    other = copy.copy(model)
+    for dimension in (1, 3):
+        other.dimension_ = dimension
+        assert f'look {dimension}-D' in other.unsupported_dimension() and 'unsupported' in other.unsupported_dimension()
 
 
 # --- elastic grid ------------------------------------------------------------------------------------------------

@@ -90,6 +90,9 @@ def measurement_gain(S: np.ndarray, continuous: np.ndarray) -> float:
     return 1.0 if gain > NEGLIGIBLE_NOISE_GAIN else gain
 
 
+GRID_DIMENSION = 2        # the elastic grid's dimension (grid_rows x grid_cols)
+
+
 class SensorManifoldModel:
     """Hyperparameters: dt, grid shape, polynomial degree of the Jacobian fields, virtual-space prior weight,
     route_travel_weight (VirtualSensorSpace.goal_route), validation_folds and heldout_bound (the model is ready only
@@ -204,6 +207,16 @@ class SensorManifoldModel:
     @property
     def ready(self) -> bool:
         return self.readiness() is None
+
+    def unsupported_dimension(self) -> Optional[str]:
+        """What to tell the user when the intrinsic dimension detected in the sensor-1 readings is not the grid's (2,
+        the pose of a differential drive relative to an infinite wall): such a sensor manifold is unsupported, the 2-D
+        grid is fitted anyway, and the held-out check and the rehearsals judge the result. None when they agree."""
+        if self.dimension_ == GRID_DIMENSION:
+            return None
+        return (f'the sensor-1 readings look {self.dimension_}-D, the grid is {GRID_DIMENSION}-D: a '
+                f'{self.dimension_}-D sensor manifold is unsupported (a 2-D grid is fitted anyway; the held-out check '
+                'and the rehearsals judge it)')
 
     def readiness(self) -> Optional[str]:
         """Why a sensor-2 goal cannot be trusted to this model yet (None: ready)."""

@@ -337,6 +337,9 @@ class SensorManifold(Node):
             f'{m.grid_.residual_:.4f} m, {m.n_excursions_} excursions, re-entry RMS '
             f'{m.virtual_.reentry_rms_before_:.2f} -> {m.virtual_.reentry_rms_after_:.2f} grid units, '
             f'{len(m.virtual_.overlap_sensor2_)} overlap samples')
+        unsupported = m.unsupported_dimension()
+        if unsupported:
+            self.get_logger().warn(unsupported)
         if not m.ready:
             self.get_logger().warn(f'model not ready ({m.readiness()}): refitting after '
                                    f'{max(self.learn_after // 4, 1)} more samples')
