@@ -31,7 +31,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Tuple
 
 import numpy as np
 
@@ -43,6 +43,7 @@ from mm_bringup.wall_experiment import (LAYOUTS, PAPER_GOAL_POSES, PAPER_START, 
                                         oracle_path_length, sensor2_goal_reading, simulator_params_file)
 from mm_bringup.wall_graph import WallGraph
 from mm_common.wheeled_sensors import SENSOR2
+from mm_manifold.sensor_manifold import SensorManifoldModel
 
 PAPER_TOLERANCE = 0.005
 # wheeled_sim publishes each of these exactly once per step (a re-sent step included)
@@ -115,7 +116,10 @@ def learn_with_progress(wall: WallGraph, every_s: float = 5.0) -> None:
 
 
 def wall_experiment(graph: ProcessGraph, work: Path, exploration_steps: int, figures: Path, phases: Phases,
-                    layout: str = 'paper', composed: bool = True, rehearsals: Optional[int] = None) -> dict:
+                    layout: str = 'paper', composed: bool = True,
+                    rehearsals: Optional[int] = None) -> Tuple[dict, 'Beside']:
+    """The Section 2 part: its summary, and the thread drawing its figures (joined by the caller, so the drawing
+    overlaps the nodes' and the recorder's shutdown)."""
     robot, dt = layout_robot(layout)       # the simulator's sensor model: ground truth chooses the goal reading only
     goal_pose = PAPER_GOAL_POSES[layout]
     began = time.monotonic()
@@ -136,6 +140,10 @@ def wall_experiment(graph: ProcessGraph, work: Path, exploration_steps: int, fig
             f'{np.round(goal, 4).tolist()} m (tolerance {PAPER_TOLERANCE} m)')
         episode = wall.run_episode(PAPER_START, goal, PAPER_TOLERANCE)
         samples = np.array(wall.sensor1_samples, dtype=float)
+        # Drawn while the wheeled nodes and the recorder shut down (a second or so), from the learner's saved model
+        # (loaded here: the work directory goes with the demo's temporary directory).
+        model = SensorManifoldModel.load(work / 'wall_model.npz')
+        drawing = Beside(draw_figures_or_say_why, model, samples, episode, goal, figures)
     phases.done('task')
     final = robot.read(episode.poses[-1], noisy=False)[list(SENSOR2)]
     error = float(np.max(np.abs(final - goal))) if np.all(np.isfinite(final)) else float('inf')
@@ -148,12 +156,7 @@ def wall_experiment(graph: ProcessGraph, work: Path, exploration_steps: int, fig
     log(f"paper task: {'reached' if episode.reached else 'NOT reached'} ({episode.detail}); noise-free final "
         f"error {error * 1000:.1f} mm, heading {episode.poses[-1][2]:+.3f} rad, blind share of the path "
         f"{summary['blind_fraction']:.2f}, path {summary['path_ratio']:.2f}x the oracle's")
-    try:
-        draw_figures(work / 'wall_model.npz', samples, episode, goal, figures)
-        log(f'figures (Figs. 7-9) in {figures} ({phases.done("figures")} s)')
-    except Exception as exc:      # figures are a by-product: report, keep the demo's result
-        log(f'figures failed: {exc!r}')
-    return summary
+    return summary, drawing
 
 
 class Beside(threading.Thread):
@@ -191,10 +194,17 @@ def arm_experiment(graph: ProcessGraph, exploration_steps: int):
     return summary, time.monotonic() - began
 
 
-def draw_figures(model_path: Path, samples: np.ndarray, episode, goal: np.ndarray, figures: Path) -> None:
+def draw_figures_or_say_why(*args) -> str:
+    """draw_figures; '' when drawn, else why not (the figures are a by-product: the demo's result stands)."""
+    try:
+        draw_figures(*args)
+    except Exception as exc:
+        return repr(exc)
+    return ''
+
+
+def draw_figures(model: SensorManifoldModel, samples: np.ndarray, episode, goal: np.ndarray, figures: Path) -> None:
     from mm_bringup.figures_wheeled import plot_samples_and_grid, plot_trajectory_spaces, plot_world_trajectory
-    from mm_manifold.sensor_manifold import SensorManifoldModel
-    model = SensorManifoldModel.load(model_path)
     figures.mkdir(parents=True, exist_ok=True)
     plot_samples_and_grid(model, samples, figures / 'fig7_sensor1_grid.png')
     plot_trajectory_spaces(model, episode.coordinates, episode.spaces, episode.sensor2,
@@ -228,9 +238,10 @@ def main(argv=None) -> int:
         recorder = graph.start('mm_bringup', 'recorder', {'output': str(bag), 'discovery_period': 0.05})
         try:
             arm = None if args.skip_arm else Beside(arm_experiment, graph, args.arm_exploration_steps)
-            results['wall'] = wall_experiment(graph, Path(tmp) / 'wall', args.exploration_steps, Path(args.figures),
-                                              phases, args.layout, composed=not args.separate_processes,
-                                              rehearsals=args.rehearsals)
+            results['wall'], drawing = wall_experiment(graph, Path(tmp) / 'wall', args.exploration_steps,
+                                                       Path(args.figures), phases, args.layout,
+                                                       composed=not args.separate_processes,
+                                                       rehearsals=args.rehearsals)
             if arm is not None:
                 results['arm'], arm_s = arm.result()
                 phases.add('arm', arm_s)
@@ -246,6 +257,9 @@ def main(argv=None) -> int:
         log(f"WARNING: the bag lost messages of the wheeled loop: the simulator publishes each of these once per "
             f"step, yet the bag holds {results['bag']['per_step_topic_counts']}")
     log(f'bag closed and summarised in {phases.done("bag")} s')
+    problem = drawing.result()
+    log(f'figures failed: {problem}' if problem else
+        f'figures (Figs. 7-9) in {args.figures} ({phases.done("figures")} s after the bag)')
     results['phase_seconds'] = phases.seconds
     results['total_s'] = phases.total()
     (bag.parent / 'demo_summary.json').write_text(json.dumps(results, indent=2, default=str) + '\n')

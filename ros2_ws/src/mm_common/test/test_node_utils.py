@@ -8,6 +8,7 @@ import time
 
 import pytest
 from rcl_interfaces.msg import Parameter as ParameterMsg, ParameterType, ParameterValue
+from rclpy.duration import Duration
 from rclpy.parameter import Parameter
 
 from mm_common.node_utils import (InputRejections, array_problem, check_parameters, declare, ordered, ordered_pair,
@@ -155,3 +156,51 @@ def test_run_node_refuses_a_bad_start_up_parameter_in_one_line(value, tmp_path):
                           text=True, timeout=30)
     assert proc.returncode == 2, proc.stderr
     assert 'Traceback' not in proc.stderr and 'cannot start' in proc.stderr and 'rate' in proc.stderr
+
+
+_SLOW_SUBSCRIBER = r'''
+import rclpy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Float64MultiArray
+rclpy.init()
+node = rclpy.create_node('slow_subscriber')
+node.create_subscription(Float64MultiArray, 'acked', lambda m: None,
+                         QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+print('subscribed', flush=True)
+rclpy.spin(node)
+'''
+
+
+def test_stopping_nodes_wait_for_a_lagging_subscriber_to_acknowledge_within_the_cap(tmp_path):
+    """run_nodes waits, before destroying the publishers, until reliable subscribers acknowledged what was published
+    (a lagging recorder would otherwise lose the last messages), and never longer than the cap: here the subscriber
+    is a process stopped with SIGSTOP, which acknowledges nothing until SIGCONT."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import Float64MultiArray
+    from mm_common.node_utils import wait_for_acknowledgements
+    script = tmp_path / 'slow.py'
+    script.write_text(_SLOW_SUBSCRIBER)
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    h = RosHarness()
+    try:
+        assert proc.stdout.readline().strip() == 'subscribed', proc.stderr.read()
+        node = h.node('publisher')
+        pub = node.create_publisher(Float64MultiArray, 'acked', QoSProfile(depth=1000,
+                                                                           reliability=ReliabilityPolicy.RELIABLE))
+        assert h.spin_until(lambda: pub.get_subscription_count() == 1, timeout=10)
+        proc.send_signal(signal.SIGSTOP)
+        for k in range(200):
+            pub.publish(Float64MultiArray(data=[float(k)] * 100))
+        began = time.monotonic()
+        wait_for_acknowledgements([node], 0.5)
+        assert 0.4 < time.monotonic() - began < 2.0             # waited, but not beyond the cap
+        assert not pub.wait_for_all_acked(Duration(seconds=0))
+        proc.send_signal(signal.SIGCONT)
+        began = time.monotonic()
+        wait_for_acknowledgements([node], 10.0)
+        assert time.monotonic() - began < 5.0 and pub.wait_for_all_acked(Duration(seconds=0))
+    finally:
+        proc.send_signal(signal.SIGCONT)
+        proc.kill()
+        proc.communicate()
+        h.close()
