@@ -142,8 +142,12 @@ def wall_experiment(graph: ProcessGraph, work: Path, exploration_steps: int, fig
         samples = np.array(wall.sensor1_samples, dtype=float)
         # Drawn while the wheeled nodes and the recorder shut down (a second or so), from the learner's saved model
         # (loaded here: the work directory goes with the demo's temporary directory).
-        model = SensorManifoldModel.load(work / 'wall_model.npz')
-        drawing = Beside(draw_figures_or_say_why, model, samples, episode, goal, figures)
+        try:
+            model = SensorManifoldModel.load(work / 'wall_model.npz')
+        except ValueError as exc:
+            drawing = Beside(lambda: f'cannot read the learned model: {exc}')
+        else:
+            drawing = Beside(draw_figures_or_say_why, model, samples, episode, goal, figures)
     phases.done('task')
     final = robot.read(episode.poses[-1], noisy=False)[list(SENSOR2)]
     error = float(np.max(np.abs(final - goal))) if np.all(np.isfinite(final)) else float('inf')

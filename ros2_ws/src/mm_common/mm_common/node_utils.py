@@ -22,7 +22,7 @@ from rclpy.signals import SignalHandlerOptions
 
 _STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)   # SIGHUP: the terminal closed
 STOP_POLL_S = 0.1        # s: longest a stop request waits for an idle executor to return
-ACK_WAIT_S = 2.0         # s: longest a stopping process waits for reliable subscribers to acknowledge its messages
+ACK_WAIT_S = 10.0        # s: longest a stopping process waits for reliable subscribers to acknowledge its messages
 
 
 def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = None) -> None:
