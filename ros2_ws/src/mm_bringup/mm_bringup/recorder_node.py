@@ -6,8 +6,9 @@
 
 Subscribes with raw serialized messages (no deserialize/serialize round trip), one subscription per topic with the
 reliability/durability adapted to the publishers' offered QoS like rosbag2 (reliable only if every publisher is
-reliable, transient-local only if every publisher is), discovers topics that appear later, and hands messages to a
-writer thread so disk I/O never blocks DDS callbacks. SIGINT, SIGTERM and SIGHUP finalise the MCAP summary and
+reliable, transient-local only if every publisher is), discovers topics that appear later, takes every message
+already delivered at each wake (Recorder.take_delivered) and hands them to a writer thread so disk I/O never blocks
+DDS callbacks. SIGINT, SIGTERM and SIGHUP finalise the MCAP summary and
 metadata.yaml. Crash safety: the writer commits a chunk (written, flushed, fsynced) at the latest `flush_period`
 seconds after its first message, so kill -9 loses at most that much; `./mm bag reindex <bag>` completes such a bag.
 A full disk stops the recording at once with one error line and leaves the bag closed with what was written.
@@ -27,7 +28,7 @@ from typing import Dict, List
 import rclpy
 from mm_common.node_utils import declare, reject_non_finite
 from mm_common.rosbag import BagError, BagWriter, QosSummary, adapt_offered_qos
-from rclpy.exceptions import ParameterException
+from rclpy.exceptions import InvalidHandle, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
@@ -85,6 +86,11 @@ class Recorder(Node):
                                'the most data a kill -9 can lose', min_value=0.01, max_value=60.0, read_only=True)
         declare(self, 'drain_period', 0.3, 'Seconds spent taking already-delivered messages after a stop signal',
                 min_value=0.0, max_value=10.0)
+        self.batch_period = declare(self, 'batch_period', 0.01,
+                                    'Seconds messages gather in the subscriptions after the recorder took some, so '
+                                    'that one executor wake takes many (each wake costs CPU the recorded graph '
+                                    'needs); queue_depth messages per topic wait meanwhile',
+                                    min_value=0.0, max_value=1.0, read_only=True)
         # as deep as the wheeled loop's own history (mm_common.qos): a recorder that lags keeps what the writer keeps
         self.queue_depth = declare(self, 'queue_depth', 10000, 'Subscription history depth per topic',
                                    min_value=1, max_value=100000, read_only=True)
@@ -154,6 +160,26 @@ class Recorder(Node):
         received = info.get('received_timestamp') or time.time_ns()
         self._queue.put((topic, data, received, info.get('source_timestamp') or received))
 
+    def take_delivered(self) -> int:
+        """Take every message DDS has already delivered to the recorded subscriptions, oldest first, and return how
+        many. The SingleThreadedExecutor takes one message per wake and rebuilds its wait set from every handle each
+        time: in the demo that cost the recorder 13.9 s of CPU, more than the three wheeled nodes together, on a
+        machine with two cores. Taken here, one wake serves all that arrived meanwhile. (The EventsExecutor, which the
+        other nodes use, delivers nothing to a callback that takes the message info, and the bag needs its
+        timestamps.)"""
+        batch = []
+        for topic, subscription in list(self._recorded_subscriptions.items()):
+            try:
+                with subscription.handle:
+                    while (taken := subscription.handle.take_message(subscription.msg_type, True)) is not None:
+                        batch.append((topic, *taken))
+            except InvalidHandle:
+                continue        # destroyed meanwhile (close())
+        batch.sort(key=lambda item: item[2].get('received_timestamp') or 0)
+        for item in batch:
+            self._on_message(*item)
+        return len(batch)
+
     def _write_loop(self) -> None:
         """Write queued messages; when idle, commit a chunk that has waited `flush_period`."""
         while True:
@@ -218,9 +244,12 @@ def main(args=None):
         executor.add_node(node)
         while not stop.is_set() and rclpy.ok():
             executor.spin_once(timeout_sec=0.05)
+            if node.take_delivered():
+                stop.wait(node.batch_period)
         drain_until = time.monotonic() + node.get_parameter('drain_period').value   # settable until the end
         while time.monotonic() < drain_until and rclpy.ok():
             executor.spin_once(timeout_sec=0.01)
+            node.take_delivered()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (BagError, RecorderConfigError, ParameterException) as exc:
