@@ -68,7 +68,7 @@ def evaluate(robot: WheeledRobot, dt: float, model, tasks: int, tolerance: float
         model = copy.copy(model)
         model.heldout_sensor2_error_ = model.heldout_limit_ = 0.0       # announced whatever its held-out error
     rng = np.random.default_rng(task_seed)
-    outcomes, ratios, errors = [], [], []
+    outcomes, ratios, errors, over = [], [], [], []
     for _ in range(tasks):
         start, goal = random_task(rng, robot)
         reading = sensor2_goal_reading(robot, goal)
@@ -82,11 +82,13 @@ def evaluate(robot: WheeledRobot, dt: float, model, tasks: int, tolerance: float
             outcomes.append(False)
             continue
         ok, err = success(robot, ep, reading, tolerance)
+        steps, predicted = ep.longest_blind
+        over.append(bool(predicted) and steps > 2 * predicted)
         outcomes.append(ok)
         errors.append(err)
         ratios.append(ep.path_length() / oracle_path_length(start, goal))
     return (float(np.mean(outcomes)), float(np.median(ratios)) if ratios else math.nan,
-            float(np.median(errors)) if errors else math.nan)
+            float(np.median(errors)) if errors else math.nan, float(np.mean(over)) if over else None)
 
 
 def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, model_params=None,
@@ -103,7 +105,7 @@ def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, mod
     # Tasks are run with the last model fitted even when it was not announced (as if it had been): success_if_used
     # against the held-out error is what the readiness bound is chosen from; `success` counts a model the agent did
     # not announce as 0 (the graph never acts on it).
-    rate, ratio, err = evaluate(robot, dt, model, tasks, tolerance, controller_params=controller_params)
+    rate, ratio, err, over = evaluate(robot, dt, model, tasks, tolerance, controller_params=controller_params)
     # Ready: the agent announced the model (the learner found it ready and it passed its rehearsals); a model that
     # failed its last rehearsal at the cap is never used by the graph, whatever the learner thought of it.
     ready = learned.model is not None
@@ -116,6 +118,7 @@ def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, mod
                 sensor2_excursions=sum(1 for e in model.excursions_ if e.sensor2) if model is not None else 0,
                 overlap_samples=len(model.virtual_.overlap_sensor2_) if model is not None else 0, tolerance=tolerance,
                 success=rate if ready else 0.0, success_if_used=rate, median_path_ratio=ratio, median_error=err,
+                share_blind_over_2x=over,
                 detail=learned.detail, seconds=round(time.monotonic() - t0, 1))
 
 
@@ -186,11 +189,19 @@ def summarize(rows: List[Dict], rule: str = 'success') -> List[Dict]:
                     ready_below_080=sum(r['ready'] and r.get('success_if_used', r['success']) < 0.8 for r in cells),
                     cells_meeting_item1=sum(r['success'] >= 0.95 and r.get('samples', math.inf) <= SAMPLE_TARGET
                                             for r in cells),
-                    median_samples=float(np.median([r.get('samples', math.nan) for r in cells])))
+                    median_samples=float(np.median([r.get('samples', math.nan) for r in cells])),
+                    mean_share_blind_over_2x=_mean_or_none([r['share_blind_over_2x'] for r in cells
+                                                            if r.get('share_blind_over_2x') is not None]))
                for key, cells in by_setting.items()]
     if rule == 'item1':
         return sorted(summary, key=lambda s: (-s['cells_meeting_item1'], -s['mean_success']))
     return sorted(summary, key=lambda s: -s['mean_success'])
+
+
+def _mean_or_none(values: List[float]) -> Optional[float]:
+    """Rounded mean, None without values (rows from before a metric existed)."""
+    values = [v for v in values if not math.isnan(v)]
+    return round(float(np.mean(values)), 3) if values else None
 
 
 def main(argv: Optional[List[str]] = None) -> int:

@@ -109,9 +109,9 @@ def test_tuning_rows_of_several_runs_are_summarized_into_one_choice(tmp_path):
             dict(exploration_steps=3000, explorer={}, rehearsals=0, ready=False, success=0.0, success_if_used=0.6,
                  samples=12000),
             dict(exploration_steps=3000, explorer={'excursion_share': 0.3}, rehearsals=0, ready=True, success=0.9,
-                 success_if_used=0.9, samples=3000),
+                 success_if_used=0.9, samples=3000, share_blind_over_2x=0.1),
             dict(exploration_steps=3000, explorer={'excursion_share': 0.3}, rehearsals=0, ready=True, success=0.95,
-                 success_if_used=0.95, samples=4000),
+                 success_if_used=0.95, samples=4000, share_blind_over_2x=0.2),
             dict(exploration_steps=3000, explorer={'excursion_share': 0.3}, rehearsals=3, ready=True, success=0.7,
                  success_if_used=0.7, samples=5000),
             dict(exploration_steps=2000, explorer={}, rehearsals=0, ready=True, success=0.2, success_if_used=0.2,
@@ -126,10 +126,11 @@ def test_tuning_rows_of_several_runs_are_summarized_into_one_choice(tmp_path):
     best, rehearsed, other, smaller_budget = result['summary']
     assert best == dict(exploration_steps=3000, explorer={'excursion_share': 0.3}, rehearsals=0, model={},
                         noisy=False, controller={}, cells=2, ready=2, mean_success=0.925, cells_at_095=1,
-                        ready_below_080=0, cells_meeting_item1=0, median_samples=3500.0)
+                        ready_below_080=0, cells_meeting_item1=0, median_samples=3500.0,
+                        mean_share_blind_over_2x=0.15)
     assert other == dict(exploration_steps=3000, explorer={}, rehearsals=0, model={}, noisy=False, controller={},
                          cells=2, ready=1, mean_success=0.5, cells_at_095=1, ready_below_080=0, cells_meeting_item1=1,
-                         median_samples=7500.0)
+                         median_samples=7500.0, mean_share_blind_over_2x=None)     # rows from before the metric
     assert smaller_budget['exploration_steps'] == 2000 and smaller_budget['cells'] == 1
     assert rehearsed['rehearsals'] == 3 and rehearsed['ready_below_080'] == 1
     # issue 11's item 1 (>= 0.95 within 3 000 samples) ranks first the setting with the most cells meeting it

@@ -20,14 +20,17 @@ distance-like reading there), so each step evaluates a set of constant commands 
 field and keeps the one that brings the state closest to the goal (plus the damped least-squares Jacobian step as one
 candidate), with a small cost on wheel travel so rotating in place is preferred where it does the job.
 
-Never wander blind: each blind stretch (no sensor group in range) gets a length the route predicts, in steps: the
-controller's own plan rolled out in the learned virtual field from where the wall was lost to the route's goal
-coordinates. A stretch that runs past `blind_factor` times that plus `blind_margin_steps` means the virtual space is
-wrong there: the robot replays the commands it drove blind backwards (it knows its own commands; a differential drive
-retraces its path exactly under reversed commands), back to where it last saw the wall (further back along the path
-before the stretch if it is still blind there: a lost reading may have hidden one out of range), and then takes the next
-practised route, or fails with the reason once `max_retries` routes were tried. Durations are in steps and distances in
-readings or grid units: nothing here knows the robot's size.
+Never wander blind: each blind stretch (no sensor group in range) gets a length the route predicts, in steps: during
+a replay the route's practised blind length (the states between its exit and sensor 2's first reading in practice),
+otherwise the controller's own plan rolled out in the learned virtual field from where the wall was lost to the route's
+goal coordinates. A stretch that runs past `blind_factor` times that plus `blind_margin_steps` means the virtual space
+is wrong there: the robot replays the commands it drove blind backwards (it knows its own commands; a differential
+drive retraces its path exactly under reversed commands), back to where it last saw the wall (further back along the
+path before the stretch if it is still blind there: a lost reading may have hidden one out of range), and then takes
+the next practised route, or fails with the reason once `max_retries` routes were tried. A replay that ran out with no
+sensor in sight is held to a tighter budget while other routes remain: `blind_budget` times the practised blind length
+for the whole stretch, out and back (see _turn_back_now). Durations are in steps and distances in readings or grid
+units: nothing here knows the robot's size.
 """
 from __future__ import annotations
 
@@ -54,6 +57,14 @@ def blind(readings) -> bool:
     return not (sees(r[:3]) or sees(r[3:5]))
 
 
+def _extend_runs(runs: list, u: np.ndarray, dt: float) -> None:
+    """Append one step of command `u` to [command, seconds] runs, merged with the last run when equal."""
+    if runs and np.array_equal(runs[-1][0], u):
+        runs[-1][1] += dt
+    else:
+        runs.append([np.array(u, dtype=float), dt])
+
+
 class SwitchingController:
     """Hyperparameters: dt, max_wheel_speed [rad/s], horizon [steps] of the virtual-space search, speed levels of
     its candidate set, travel_weight (cost of wheel travel relative to the squared goal error), manoeuvre_travel_weight
@@ -74,7 +85,10 @@ class SwitchingController:
     --controller` on tuning seeds, mean success 0.747 / 0.850 / 0.835 / 0.837 over 30 noisy cells,
     results/tune_wall_retrace.json; without lost readings it changes nothing), replay_routes (cross the blind stretch
     by replaying the route's practised commands from its exit, module docstring; False: the paper's virtual-space
-    plan alone) and exit_tolerance [grid units] (how close to the route's exit the replay starts)."""
+    plan alone), exit_tolerance [grid units] (how close to the route's exit the replay starts), exit_holds (times the
+    exit's command is driven again while sensor 1 still sees the wall after it: the approach from inside the range
+    stops short of the practised exit) and blind_budget (a stretch past a replay that ran out, out and back, in
+    multiples of the route's practised blind length: issue 11's target is 2; 0: only the watchdog's limit)."""
 
     def __init__(self, dt: float, max_wheel_speed: float = 6.0, horizon: int = 12,
                  speed_levels=(1.0, 0.4, 0.12, 0.0), travel_weight: float = 1e-3, tolerance: float = 0.01,
@@ -82,7 +96,8 @@ class SwitchingController:
                  turn_speed: float = 0.25, drive_speed: float = 2 / 3, stall_steps: int = 20, max_retries: int = 3,
                  max_settle_steps: int = 30, manoeuvre_travel_weight: float = 1e-2, blind_factor: float = 1.5,
                  blind_margin_steps: int = 20, blind_prediction_cap: int = 100, retrace_history_steps: int = 5,
-                 replay_routes: bool = True, exit_tolerance: float = 0.05):
+                 replay_routes: bool = True, exit_tolerance: float = 0.05, exit_holds: int = 5,
+                 blind_budget: float = 2.0):
         if dt <= 0 or max_wheel_speed <= 0 or tolerance <= 0 or horizon < 1:
             raise ValueError('dt, max_wheel_speed, tolerance and horizon must be positive')
         if travel_weight < 0 or manoeuvre_travel_weight < 0:
@@ -96,6 +111,8 @@ class SwitchingController:
                              'retrace_history_steps >= 1')
         if not exit_tolerance > 0:
             raise ValueError('exit_tolerance must be positive')
+        if exit_holds < 0 or not (blind_budget == 0 or blind_budget >= 1):
+            raise ValueError('need exit_holds >= 0 and blind_budget 0 (off) or >= 1')
         self.dt = dt
         self.max_wheel_speed = max_wheel_speed
         self.horizon = horizon
@@ -114,6 +131,8 @@ class SwitchingController:
         self.retrace_history_steps = retrace_history_steps
         self.replay_routes = bool(replay_routes)
         self.exit_tolerance = exit_tolerance
+        self.exit_holds = exit_holds
+        self.blind_budget = blind_budget
         self._plan: Optional[np.ndarray] = None
         levels = sorted({s * max_wheel_speed * sign for s in speed_levels for sign in (-1, 1)})
         self.candidates = np.array(list(product(levels, levels)), dtype=float)
@@ -173,6 +192,8 @@ class SwitchingController:
              self._checked_replay(route[2] if len(route) > 2 else None)) for route in alternatives]
         self._route_replay = self._routes[0][2]   # the current route's practised commands (None: none)
         self._replay: list = []                   # [command, seconds] runs of the replay under way
+        self._replay_total = 0                    # its steps as driven here (_replay_steps when it started)
+        self._exit_command, self._exit_holds = None, 0   # its first moving command, and how often driven again
         self._seen_in_range = []           # grid coordinates measured in this episode with sensor 1 in range
         self.retries = 0
         self.best_error, self.stalled_steps = np.inf, 0
@@ -182,6 +203,9 @@ class SwitchingController:
         # Blind watchdog: the current stretch, its prediction and limit, the commands driven in it (to retrace), the
         # longest stretch of the episode as (steps, predicted steps), and why the task cannot go on (None: it can).
         self.blind_steps, self.predicted_blind, self.blind_limit = 0, 0, 0
+        self._practised_stretch = False     # the stretch began in a replay: the way back must fit in 2x its length
+        self._blind_runs: list = []         # [command, seconds] runs driven in this stretch (the way back)
+        self._last_chance_taken = False     # the one step driven on after the way back stopped fitting (see there)
         self._path: list = []
         self.returning = False
         self.longest_blind = (0, 0)
@@ -331,21 +355,32 @@ class SwitchingController:
             if self.blind_steps > self.longest_blind[0]:
                 self.longest_blind = (self.blind_steps, self.predicted_blind)
             if not self.returning and self.blind_steps > self.blind_limit:
-                self.returning = True
-                self.watchdog_trips += 1
+                self._turn_back()
             if self.returning:
                 return self._retrace()
+        replaying = bool(self._replay)
         u, reached, error = self._command(space, coordinates, sensor2, virtual_field, sensor2_field, sensor1_jacobian,
                                           bounds, sensor2_box, sensor2_measured)
+        if (blind and self.blind_budget and self._practised_stretch and not replaying
+                and self.retries < self.max_retries and self._turn_back_now(u)):
+            self._turn_back()
+            return self._retrace()
         self._remember(u, blind)
+        if blind:
+            _extend_runs(self._blind_runs, u, self.dt)
         return u, reached, error
 
     # --- blind watchdog -----------------------------------------------------------------------------------------
     def _start_blind_stretch(self, coordinates: Optional[np.ndarray], virtual_field, bounds) -> None:
-        """The wall was just lost: predict the stretch (the replay's remaining steps while one is under way, else
-        the plan's rollout to the route's goal) and set its limit."""
-        if self._replay:
-            self.predicted_blind = min(self.blind_prediction_cap, max(1, self._replay_steps()))
+        """The wall was just lost: predict the stretch (while a replay is under way the route's practised blind
+        length, else the plan's rollout to the route's goal) and set its limit."""
+        self._blind_runs = []
+        self._last_chance_taken = False
+        self._practised_stretch = bool(self._replay)
+        if self._practised_stretch:
+            # The states between the exit and sensor 2's first reading in practice: the replay's steps (as driven
+            # here, commands faster than max_wheel_speed slowed) but the last.
+            self.predicted_blind = min(self.blind_prediction_cap, max(1, self._replay_total - 1))
         else:
             self.predicted_blind = (self.blind_prediction_cap if coordinates is None
                                     else self.predict_blind_steps(virtual_field, np.asarray(coordinates, dtype=float),
@@ -367,6 +402,34 @@ class SwitchingController:
             if bounds is not None:
                 y = np.clip(y, bounds[0], bounds[1])
         return self.blind_prediction_cap
+
+    def _turn_back(self) -> None:
+        self.returning = True
+        self.watchdog_trips += 1
+
+    def _turn_back_now(self, u: np.ndarray) -> bool:
+        """Past a practised crossing (the replay ran out) with no sensor in sight: whether to go back instead of
+        driving `u`. The budget is blind_budget times the route's practised blind length, counting the retrace at
+        max_wheel_speed: drive on while a miss after `u` could still come back within it; else go back if that
+        still fits now; else (the way back no longer fits: a route practised with one blind step that missed by
+        one) drive one step more, which ends the stretch within the budget if sensor 2 sees the wall after it,
+        then go back."""
+        budget = self.blind_budget * self.predicted_blind
+        runs = [[v.copy(), seconds] for v, seconds in self._blind_runs]
+        back_now = self._retrace_steps(runs)
+        _extend_runs(runs, u, self.dt)
+        if self.blind_steps + 1 + self._retrace_steps(runs) <= budget:
+            return False
+        if self.blind_steps + back_now <= budget or self._last_chance_taken:
+            return True
+        self._last_chance_taken = self.blind_steps <= budget
+        return not self._last_chance_taken
+
+    def _retrace_steps(self, runs: list) -> int:
+        """Steps _follow takes to drive [command, seconds] `runs` backward (each run sped up to max_wheel_speed, at
+        least one step; standing still is skipped)."""
+        return sum(math.ceil(seconds * float(np.max(np.abs(u))) / (self.max_wheel_speed * self.dt) - 1e-9) or 1
+                   for u, seconds in runs if np.any(u))
 
     def _remember(self, u: np.ndarray, blind: bool) -> None:
         """Keep the path the retrace may take back: [command, seconds] runs, newest last. While blind every step is
@@ -421,11 +484,14 @@ class SwitchingController:
     def _start_replay(self) -> None:
         """At the route's exit: replay its practised commands (equal consecutive ones merged into runs)."""
         self._replay = []
+        moving = [u for u in self._route_replay if np.any(u)]
+        self._exit_command, self._exit_holds = (np.asarray(moving[0], dtype=float) if moving else None), 0
         for u in self._route_replay:
             if self._replay and np.array_equal(self._replay[-1][0], u):
                 self._replay[-1][1] += self.dt
             else:
                 self._replay.append([u.copy(), self.dt])
+        self._replay_total = self._replay_steps()
 
     def _replay_steps(self) -> int:
         """Steps the replay under way still takes (runs faster than max_wheel_speed take longer)."""
@@ -490,6 +556,13 @@ class SwitchingController:
             return u, False, float(error.max())
         self.settled, self._settle_readings = 0, []
         self._plan = None
+        if (self._replay and space == SPACE_SENSOR1 and self._exit_command is not None
+                and self._exit_holds < self.exit_holds and self._replay_total - self._replay_steps() == 1):
+            # Still in range after the exit's command: the approach (from inside the range) stopped short of the
+            # practised exit, the last in-range state. Its command again, until the wall is lost as in practice.
+            self._exit_holds += 1
+            return self._exit_command * min(1.0, self.max_wheel_speed / float(np.max(np.abs(self._exit_command)))), \
+                False, float('nan')
         u = self._follow(self._replay, backward=False)
         if u is not None:                 # crossing as practised (module docstring)
             return u, False, float('nan')
