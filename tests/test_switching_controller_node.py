@@ -388,10 +388,24 @@ def test_the_paper_s_undirected_exploration_and_blind_crossing_are_parameter_cho
     rig = Rig({'exploration_steps': 0})
     try:
         assert rig.node.agent._new_controller(0.01).replay_routes is True
+        assert rig.node.agent._new_controller(0.01).blind_budget == 0.0
     finally:
         rig.ros.close()
     with pytest.raises(InvalidParameterValueException):          # out of range: refused at start-up
         Rig({'exploration_excursion_share': 1.5})
+
+
+def test_the_blind_budget_is_a_start_up_parameter_that_reaches_every_controller():
+    rig = Rig({'exploration_steps': 0, 'blind_budget': 2.0})
+    try:
+        assert rig.node.agent._new_controller(0.01).blind_budget == 2.0
+        assert not rig.node.set_parameters([Parameter('blind_budget', value=3.0)])[0].successful
+    finally:
+        rig.ros.close()
+    with pytest.raises(ValueError, match='blind_budget'):      # run_node turns it into one line and status 2
+        Rig({'exploration_steps': 0, 'blind_budget': 0.5})
+    with pytest.raises(InvalidParameterValueException):          # out of range: refused at start-up
+        Rig({'exploration_steps': 0, 'blind_budget': -1.0})
 
 
 def test_node_and_offline_runner_command_alike(learned):

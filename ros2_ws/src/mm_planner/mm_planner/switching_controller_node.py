@@ -106,11 +106,17 @@ class SwitchingControllerNode(Node):
                          inspect.signature(SwitchingController).parameters['replay_routes'].default,
                          'Cross the blind stretch by replaying the chosen practised excursion\'s commands from its '
                          'exit (false: the paper\'s virtual-space plan alone); fixed at start-up', read_only=True)
+        blind_budget = declare(self, 'blind_budget',
+                               float(inspect.signature(SwitchingController).parameters['blind_budget'].default),
+                               'Past a replay that ran out blind, turn back once the way out and back would exceed '
+                               'this many times the route\'s practised blind length (0: off, else >= 1; shorter blind '
+                               'stretches for some success under noise, README issue 11); fixed at start-up',
+                               min_value=0.0, max_value=100.0, read_only=True)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.agent = WallAgent(self.dt, exploration_steps, max_wheel_speed, tolerance, max_reach_steps,
                                random_state=seed, max_exploration_steps=max_exploration or None,
                                explorer_params={'approach_probability': approach, 'excursion_share': share},
-                               rehearsals=rehearsals, controller_params={'replay_routes': replay})
+                               rehearsals=rehearsals, controller_params={'replay_routes': replay, 'blind_budget': blind_budget})
 
         self.bumped = False
         # The bumper reading of a step travels on its own topic and may arrive after the state: in lockstep the

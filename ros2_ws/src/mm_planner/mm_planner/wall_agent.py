@@ -146,6 +146,7 @@ class WallAgent:
         self.explorer_params = _settable(RandomExplorer, explorer_params, ('max_wheel_speed', 'random_state'))
         self.controller_params = _settable(SwitchingController, controller_params,
                                            ('dt', 'max_wheel_speed', 'tolerance'))
+        self._new_controller(tolerance)      # a bad hyperparameter fails here, not at the first goal (ValueError)
         self.explorer = RandomExplorer(**self.explorer_params, max_wheel_speed=max_wheel_speed,
                                        random_state=random_state)
         self.controller: Optional[SwitchingController] = None
