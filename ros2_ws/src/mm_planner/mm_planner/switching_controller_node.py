@@ -116,7 +116,8 @@ class SwitchingControllerNode(Node):
         self.agent = WallAgent(self.dt, exploration_steps, max_wheel_speed, tolerance, max_reach_steps,
                                random_state=seed, max_exploration_steps=max_exploration or None,
                                explorer_params={'approach_probability': approach, 'excursion_share': share},
-                               rehearsals=rehearsals, controller_params={'replay_routes': replay, 'blind_budget': blind_budget})
+                               rehearsals=rehearsals,
+                               controller_params={'replay_routes': replay, 'blind_budget': blind_budget})
 
         self.bumped = False
         # The bumper reading of a step travels on its own topic and may arrive after the state: in lockstep the

@@ -200,11 +200,12 @@ def wheeled_graph(steps: int, work: Path, composed: bool = False) -> dict:
 
 
 def composed_unobserved(steps: int, log_dir: Path) -> dict:
-    """The composed loop (mm_bringup wheeled_container) exploring `steps` steps with no other process taking a
-    message of every step: from the stamp of the simulator's `ready` log line (it keeps the system clock) to the
-    arrival here of the controller's `EXPLORING -> LEARNING` line, both on /rosout and the system clock (the loop's
-    start-up and the delivery inside the span: the rate is if anything low). Every process that takes the state
-    each step (graph_bench's experimenter above, a recorder) costs the loop its deliveries."""
+    """The composed loop (mm_bringup wheeled_container, the learner on the grouped readings as WallGraph has it)
+    exploring `steps` steps with no other process taking a message of every step: from the stamp of the simulator's
+    `ready` log line (it keeps the system clock) to the arrival here of the controller's `EXPLORING -> LEARNING` line,
+    both on /rosout and the system clock (the loop's start-up and the delivery inside the span: the rate is if
+    anything low). Every process that takes the state each step (graph_bench's experimenter above, a recorder) costs
+    the loop its deliveries."""
     from rcl_interfaces.msg import Log
     marks = {}
 
@@ -223,7 +224,9 @@ def composed_unobserved(steps: int, log_dir: Path) -> dict:
             container = graph.start('mm_bringup', 'wheeled_container',
                                     {'switching_controller:exploration_steps': steps,
                                      'sensor_manifold:learn_after': steps, 'sensor_manifold:model_path': '',
-                                     'sensor_manifold:samples_path': '', 'wheeled_sim:republish_period': 0.5})
+                                     'sensor_manifold:samples_path': '', 'wheeled_sim:republish_period': 0.5,
+                                     # the readings as the observed loop above takes them (WallGraph): one group
+                                     'sensor_manifold:range_input': 'grouped'})
             assert ros.spin_until(lambda: len(marks) == 2, 120.0), graph.log_tail(container)
     finally:
         ros.close()
