@@ -511,8 +511,12 @@ def _ranges(k: int) -> list:
 
 
 def _range_group(k: int) -> RangeGroup:
+    ranges = [msg for _, msg in _ranges(k)]
     return RangeGroup(header=_header(k), names=[name for name, _ in WHEELED_SENSORS],
-                      ranges=[msg for _, msg in _ranges(k)])
+                      frame_ids=[r.header.frame_id for r in ranges], radiation_type=[r.radiation_type for r in ranges],
+                      field_of_view=[r.field_of_view for r in ranges], min_range=[r.min_range for r in ranges],
+                      max_range=[r.max_range for r in ranges], range=[r.range for r in ranges],
+                      variance=[r.variance for r in ranges])
 
 
 def _manifold_state(k: int) -> ManifoldState:

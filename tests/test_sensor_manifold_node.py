@@ -40,6 +40,14 @@ def model_file(tmp_path_factory):
     return path, model
 
 
+def group_of(ranges) -> RangeGroup:
+    """The RangeGroup of the five sensors' Range messages (SENSOR_NAMES order), as wheeled_sim groups them."""
+    return RangeGroup(names=list(SENSOR_NAMES), frame_ids=[r.header.frame_id for r in ranges],
+                      radiation_type=[r.radiation_type for r in ranges],
+                      field_of_view=[r.field_of_view for r in ranges], min_range=[r.min_range for r in ranges],
+                      max_range=[r.max_range for r in ranges], range=[r.range for r in ranges],
+                      variance=[r.variance for r in ranges])
+
 class Rig:
     def __init__(self, params=None):
         self.ros = RosHarness()
@@ -83,7 +91,7 @@ class Rig:
             msg.header.stamp.sec = sec
             msg.header.frame_id = SENSOR_NAMES[i]
             ranges.append(msg)
-        group = RangeGroup(names=list(SENSOR_NAMES), ranges=ranges)
+        group = group_of(ranges)
         group.header.stamp.sec = sec
         for name, value in changes.items():
             setattr(group, name, value)
@@ -535,16 +543,17 @@ def test_grouped_readings_give_the_samples_of_the_five_topics_and_a_bad_group_is
             if mode == 'grouped':
                 reading = robot.read(poses[0], noisy=False)
                 spoilt = [dict(names=list(SENSOR_NAMES[:4])), dict(names=list(SENSOR_NAMES[:4]) + ['front_left']),
-                          dict(names=['a', 'b', 'c', 'd', 'e']), dict(ranges=[]),
-                          dict(header=RangeGroup().header)]               # stamp 0: the readings' stamps differ
+                          dict(names=['a', 'b', 'c', 'd', 'e']), dict(range=[]), dict(frame_ids=['x'] * 4),
+                          dict(frame_ids=[''] * 5), dict(header=RangeGroup().header)]     # stamp 0: goes backwards
                 for n, changes in enumerate(spoilt):
                     before = rig.node.rejected
                     rig.publish_group(20, reading, **changes)
                     assert rig.ros.spin_until(lambda: rig.node.rejected == before + 1), changes
                 assert len(rig.states) == len(poses)                       # nothing came of the spoilt groups
                 bad = Range(radiation_type=Range.INFRARED, min_range=0.005, max_range=0.25, range=3.0)
-                group = RangeGroup(names=list(SENSOR_NAMES), ranges=[bad] * 5)
-                group.header.stamp.sec = bad.header.stamp.sec = 20
+                bad.header.frame_id = 'side_rear_link'
+                group = group_of([bad] * 5)
+                group.header.stamp.sec = 20
                 rig.group.publish(group)
                 assert rig.ros.spin_until(lambda: rig.node.rejected == before + 2)
                 rig.publish_group(20, reading)

@@ -3,7 +3,7 @@
     ./mm run mm_manifold sensor_manifold --ros-args -p use_sim_time:=true -p model_path:=results/wall_model.npz
 
 Inputs (what the robot senses and commands, nothing else): the five `wheeled/range/*` readings, grouped by stamp into
-one sample per simulator step (`range_input: per_sensor`, the default), or the same five Range messages of a step in one
+one sample per simulator step (`range_input: per_sensor`, the default), or the same five readings of a step in one
 mm_msgs/RangeGroup on `wheeled/ranges` (`range_input: grouped`, what wheeled_sim also publishes: one delivery per step
 instead of five, the lockstep loop's rate, README issue 14), and its own `wheeled/wheel_velocity_controller/commands`
 (the rule below lives in
@@ -76,18 +76,26 @@ def _ns(stamp) -> int:
 
 
 def range_problem(msg: Range) -> Optional[str]:
-    """Why a Range message is unusable, or None. REP 117: +inf beyond max_range, -inf below min_range; NaN is a lost
-    reading (the simulator's dropout); a finite reading must lie within [min_range, max_range]."""
-    if msg.radiation_type not in (Range.ULTRASOUND, Range.INFRARED):
-        return f'unknown radiation_type {msg.radiation_type}'
-    if not msg.header.frame_id:
+    """Why a Range message is unusable, or None (reading_problem)."""
+    return reading_problem(msg.header.frame_id, msg.radiation_type, msg.field_of_view, msg.min_range, msg.max_range,
+                           msg.range)
+
+
+def reading_problem(frame_id: str, radiation_type: int, field_of_view: float, min_range: float, max_range: float,
+                    value: float) -> Optional[str]:
+    """Why a reading (the fields of a Range message, alone or in a RangeGroup) is unusable, or None. REP 117: +inf
+    beyond max_range, -inf below min_range; NaN is a lost reading (the simulator's dropout); a finite reading must lie
+    within [min_range, max_range]."""
+    if radiation_type not in (Range.ULTRASOUND, Range.INFRARED):
+        return f'unknown radiation_type {radiation_type}'
+    if not frame_id:
         return 'empty frame_id'
-    if not (math.isfinite(msg.field_of_view) and 0.0 <= msg.field_of_view <= math.pi):
-        return f'field_of_view {msg.field_of_view} outside [0, pi] rad'
-    if not (math.isfinite(msg.min_range) and math.isfinite(msg.max_range) and 0.0 <= msg.min_range < msg.max_range):
-        return f'min_range {msg.min_range} / max_range {msg.max_range} need 0 <= min < max'
-    if math.isfinite(msg.range) and not msg.min_range <= msg.range <= msg.max_range:
-        return f'range {msg.range} m outside [{msg.min_range}, {msg.max_range}] m (out of range is +-inf)'
+    if not (math.isfinite(field_of_view) and 0.0 <= field_of_view <= math.pi):
+        return f'field_of_view {field_of_view} outside [0, pi] rad'
+    if not (math.isfinite(min_range) and math.isfinite(max_range) and 0.0 <= min_range < max_range):
+        return f'min_range {min_range} / max_range {max_range} need 0 <= min < max'
+    if math.isfinite(value) and not min_range <= value <= max_range:
+        return f'range {value} m outside [{min_range}, {max_range}] m (out of range is +-inf)'
     return None
 
 
@@ -403,34 +411,35 @@ class SensorManifold(Node):
         if problem:
             self._reject(f'{SENSOR_NAMES[index]} reading', problem)
             return
-        self._take_readings(stamp, [(index, msg)])
+        self._take_readings(stamp, [(index, msg.min_range, msg.max_range, msg.range)])
 
     def _on_range_group(self, msg: RangeGroup) -> None:
         """A step's five readings at once: all usable, or the step is dropped whole (the simulator sends it again
         while no command comes)."""
         names = list(msg.names)
-        if len(names) != len(msg.ranges) or sorted(names) != SORTED_SENSOR_NAMES:
-            self._reject('range group', f'names {names[:10]} with {len(msg.ranges)} ranges: need one Range for each of '
-                                        f'{", ".join(SENSOR_NAMES)}')
+        fields = (msg.frame_ids, msg.radiation_type, msg.field_of_view, msg.min_range, msg.max_range, msg.range)
+        if sorted(names) != SORTED_SENSOR_NAMES or any(len(field) != len(names) for field in fields):
+            self._reject('range group', f'names {names[:10]} with {[len(field) for field in fields]} frame_ids, '
+                                        'radiation types, fields of view, min and max ranges and ranges: need one '
+                                        f'reading of each of {", ".join(SENSOR_NAMES)}')
             return
+        readings = list(zip(*fields))
         stamp = _ns(msg.header.stamp)
-        problem = next((f'{name}: {p}' for name, r in zip(names, msg.ranges)
-                        for p in [range_problem(r) or (None if _ns(r.header.stamp) == stamp else
-                                                       f'stamp {_ns(r.header.stamp) * 1e-9:.3f} s is not the '
-                                                       f"group's {stamp * 1e-9:.3f} s")] if p), None)
-        problem = problem or self._stamp_problem(stamp)
+        problem = next((f'{name}: {p}' for name, reading in zip(names, readings)
+                        for p in [reading_problem(*reading)] if p), None) or self._stamp_problem(stamp)
         if problem:
             self._reject('range group', problem)
             return
-        self._take_readings(stamp, [(SENSOR_INDEX[name], r) for name, r in zip(names, msg.ranges)])
+        self._take_readings(stamp, [(SENSOR_INDEX[name], low, high, value)
+                                    for name, (_, _, _, low, high, value) in zip(names, readings)])
 
     def _take_readings(self, stamp: int, readings) -> None:
-        """Valid (sensor index, Range) readings of the step `stamp` into the sample assembly."""
+        """Valid (sensor index, min_range, max_range, range) readings of the step `stamp` into the sample assembly."""
         was_waiting = self.assembler.waiting
-        for index, msg in readings:
-            self.sensor_limits[index] = (float(msg.min_range), float(msg.max_range))
+        for index, low, high, value in readings:
+            self.sensor_limits[index] = (float(low), float(high))
             self._publish_model()
-            self._take(self.assembler.reading(index, stamp, msg.range))
+            self._take(self.assembler.reading(index, stamp, value))
         if self.assembler.waiting is not None and self.assembler.waiting is not was_waiting:
             self.waiting_since = self.steady.now().nanoseconds
 

@@ -4,7 +4,7 @@
     ros2 run mm_sim wheeled_sim --ros-args -p lockstep:=false -p real_time_factor:=1.0      # real install
 
 Publishes, per simulation step and in this order, all with the stamp of that step:
-  /clock, the five `wheeled/range/<sensor>` (sensor_msgs/Range), the same five in one `wheeled/ranges`
+  /clock, the five `wheeled/range/<sensor>` (sensor_msgs/Range), the same five readings in one `wheeled/ranges`
   (mm_msgs/RangeGroup, for a consumer that needs every reading of a step: one delivery instead of five),
   `wheeled/bumper`, `wheeled/ground_truth/odom` and, every `marker_period` steps, `wheeled/markers`.
 Consumes `wheeled/wheel_velocity_controller/commands` (std_msgs/Float64MultiArray, [left, right] wheel rad/s).
@@ -158,8 +158,13 @@ class WheeledSim(Node):
             m.min_range = float(s.min_range)
             m.max_range = float(s.max_range)
             self.range_msgs.append(m)
-        # the very Range messages above (their fields are written each step before either is published)
-        self.range_group = RangeGroup(names=[s.name for s in sensors], ranges=self.range_msgs)
+        # the same readings, one array per Range field (only `range` changes from step to step)
+        self.range_group = RangeGroup(
+            names=[s.name for s in sensors], frame_ids=[m.header.frame_id for m in self.range_msgs],
+            radiation_type=[m.radiation_type for m in self.range_msgs],
+            field_of_view=[m.field_of_view for m in self.range_msgs],
+            min_range=[m.min_range for m in self.range_msgs], max_range=[m.max_range for m in self.range_msgs],
+            range=[0.0] * len(sensors), variance=[m.variance for m in self.range_msgs])
         self.odom_msg = Odometry()
         self.odom_msg.header.frame_id = 'world'
         self.odom_msg.child_frame_id = 'base_link'
@@ -297,12 +302,13 @@ class WheeledSim(Node):
         stamp = _stamp(self.sim_time_ns)
         self.clock_msg.clock = stamp
         self.clock_pub.publish(self.clock_msg)
-        readings = self.robot.read(self.pose)
+        readings = self.robot.read(self.pose).tolist()
         for pub, msg, value in zip(self.range_pubs, self.range_msgs, readings):
             msg.header.stamp = stamp
-            msg.range = float(value)
+            msg.range = value
             publish_if_subscribed(pub, msg)
         self.range_group.header.stamp = stamp
+        self.range_group.range = readings
         publish_if_subscribed(self.range_group_pub, self.range_group)
         self.bool_msg.data = bool(self.bumped)
         self.bumper_pub.publish(self.bool_msg)
