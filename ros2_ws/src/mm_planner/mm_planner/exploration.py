@@ -34,7 +34,6 @@ from mm_common.wheeled_sensors import SENSOR1, SENSOR2
 # The paper's exploration ("collecting samples by random motion"): RandomExplorer hyperparameters without direction.
 # The groups' indices as index arrays, made once: the explorer runs every step, and numpy's per-call overhead on a
 # few readings (a list to index with, np.all's dispatch) costs the lockstep loop more than the work itself.
-FRONT, SIDE = np.array(SENSOR1), np.array(SENSOR2)
 UNDIRECTED = {'approach_probability': 0.0, 'excursion_share': 0.0}
 
 
@@ -107,7 +106,7 @@ class RandomExplorer:
         self.since_in_range: List[np.ndarray] = []
         self.mode = 'wander'
         self.excursions_started = 0
-        self.last_valid = np.full(len(SENSOR1) + len(SENSOR2), np.inf)
+        self.last_valid = [math.inf] * (len(SENSOR1) + len(SENSOR2))    # the latest reading of each sensor
         self.last_command = np.zeros(2)
         self.steps = 0
         self.last_reflex_step = -10 ** 9
@@ -246,14 +245,14 @@ class RandomExplorer:
         """The robot drove `command` from `readings` on another's decision (the agent's rehearsals): remembered like
         its own commands, so that a later retrace toward sensor-1 range undoes it too; the plan under way is dropped
         (it was made for where the robot was)."""
-        readings = np.asarray(readings, dtype=float)
-        self.last_valid = np.where(np.isnan(readings), self.last_valid, readings)
+        self.last_valid = [last if math.isnan(v) else v
+                           for v, last in zip(np.asarray(readings, dtype=float).tolist(), self.last_valid)]
         cmd = np.asarray(command, dtype=float).copy()
         self.plan.clear()
         self.practice_left = 0
         self._finish_excursion()
         self.mode = 'wander'
-        if np.isfinite(self.last_valid[FRONT]).all():
+        if all(math.isfinite(self.last_valid[i]) for i in SENSOR1):
             self.since_in_range = [cmd]
         else:
             self.since_in_range.append(cmd)
@@ -265,15 +264,16 @@ class RandomExplorer:
         if not (math.isfinite(front_range) and front_range > 0):
             raise ValueError(f'front_range {front_range!r} must be a positive max range [m]')
         self.front_range = float(front_range)
-        readings = np.asarray(readings, dtype=float)
-        lost = np.isnan(readings)
-        readings = np.where(lost, self.last_valid, readings)
+        # Plain Python on the five values: numpy's per-call cost on arrays this small was most of this step's work
+        # (README, issue 14); the decisions are the same comparisons.
+        values = readings.tolist() if isinstance(readings, np.ndarray) else [float(v) for v in readings]
+        readings = [last if math.isnan(v) else v for v, last in zip(values, self.last_valid)]
         self.last_valid = readings
-        front = readings[FRONT]
-        finite = np.isfinite(front)
-        in_range = bool(finite.all())
-        too_close = (bumped or bool((finite & (front < self.near * self.front_range)).any())
-                     or bool((front == -np.inf).any()))
+        front = [readings[i] for i in SENSOR1]
+        finite = [math.isfinite(v) for v in front]
+        in_range = all(finite)
+        near = self.near * self.front_range
+        too_close = bumped or any(ok and v < near for v, ok in zip(front, finite)) or -math.inf in front
         if in_range:
             if self.mode in ('retrace', 'search'):
                 self.mode = 'wander'
@@ -285,7 +285,7 @@ class RandomExplorer:
             self.practice_left = 0
             self.plan.extend(self._reflex(bumped))
             self.mode = 'wander'
-        in_range2 = bool(np.isfinite(readings[SIDE]).all())
+        in_range2 = all(math.isfinite(readings[i]) for i in SENSOR2)
         if self.current is not None:
             self.current_saw_sensor2 |= in_range2 and not in_range
             if self.mode != 'excursion':          # it ended (back in range, reflex or retrace)
@@ -295,17 +295,17 @@ class RandomExplorer:
         elif (self.mode == 'excursion' and in_range2 and not too_close and self.plan
               and self.rng.random() < self.practice_probability):
             self._practice()
-        sighted = front[finite]
-        if self.mode == 'search' and sighted.size:
+        sighted = [v for v, ok in zip(front, finite) if ok]
+        if self.mode == 'search' and sighted:
             # Part of sensor 1 sees the wall. Driving ahead and coming nearer: drive on toward it until all of it
             # does or a reflex ends the ray (not during a turn, which must be completed to face the wall, nor along
             # the wall, where the sighting comes no nearer); the next rays start short again.
             ahead = bool((self.last_command == self.drive_wheel_speed).all())
-            if ahead and not too_close and sighted.min() < self.search_sighting:
+            if ahead and not too_close and min(sighted) < self.search_sighting:
                 self.plan.clear()
                 self.plan.extend(self._segment([self.drive_wheel_speed] * 2, 1))
             self.search_steps = self.hold_steps[1]
-        self.search_sighting = sighted.min() if sighted.size else math.inf
+        self.search_sighting = min(sighted) if sighted else math.inf
         if not self.plan:
             if not self.seen_sensor1:
                 self._search()

@@ -137,6 +137,7 @@ class SwitchingControllerNode(Node):
         self.command_pub = self.create_publisher(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands',
                                                  LOOP_QOS)
         self.status_pub = self.create_publisher(ControllerStatus, 'wheeled/controller/status', LOOP_QOS)
+        self.status_msg = ControllerStatus()
         self.verdict_pub = self.create_publisher(ModelVerdict, 'wheeled/controller/model_verdict', LATCHED_QOS)
         self.create_subscription(ManifoldState, 'wheeled/manifold/state', self._on_state, LOOP_QOS)
         self.create_subscription(Bool, 'wheeled/bumper', self._on_bumper, LOOP_QOS)
@@ -303,16 +304,20 @@ class SwitchingControllerNode(Node):
         if decision.command is not None:
             self.last_answered = _ns(decision.stamp)
             self.bumper_since_command = False
-            self.last_command = Float64MultiArray(data=[float(v) for v in decision.command])
+            if self.last_command is None:
+                self.last_command = Float64MultiArray()
+            # written in place (a new message each step cost the lockstep loop microseconds): the latest command,
+            # which is what a lost one is re-sent as
+            self.last_command.data = np.asarray(decision.command, dtype=float).tolist()
             self.answered_wall = time.monotonic()
             self.command_pub.publish(self.last_command)
         # Stamped with the state it answers (the sim clock on /clock may lag behind the state that just arrived).
         stamp = decision.stamp if decision.stamp is not None else self.state_stamp
         if stamp is None:
             stamp = self.get_clock().now().to_msg()
-        # Built only for a subscriber: unread, the status would cost the lockstep loop its construction every step.
+        # Written only for a subscriber: unread, the status would cost the lockstep loop its serialisation every step.
         if self.status_pub.get_subscription_count():
-            msg = ControllerStatus()
+            msg = self.status_msg                   # every field written each time
             msg.header.stamp = stamp
             msg.phase, msg.phase_name, msg.detail = decision.phase, decision.phase_name, decision.detail
             msg.error, msg.target, msg.step = float(decision.error), list(decision.target), decision.step
