@@ -1,14 +1,17 @@
 """mm_bringup wheeled_container: the wheeled loop's three nodes in one process. They are the usual nodes on the usual
 topics (the learning is identical to three processes: tests/test_determinism_under_load.py); here: the simulator keeps
-its own clock whatever `use_sim_time` the command line gives, the two others share one `/clock` subscription (and cannot
-leave it), node-specific parameters reach their node only, and a parameter a node refuses ends the process with one
-error line and status 2, as a single node's does (the nodes created before it log as usual)."""
+its own clock whatever `use_sim_time` the command line gives, the two others take it from the simulator in the process
+(no /clock subscription of their own; they cannot leave it), node-specific parameters reach their node only, and a
+parameter a node refuses ends the process with one error line and status 2, as a single node's does (the nodes created
+before it log as usual)."""
 import subprocess
 
 from mm_common.ros_harness import RosHarness
 from rcl_interfaces.srv import GetParameters
 from rclpy.parameter import Parameter
+from mm_sim.wheeled_sim_node import WheeledSim
 from rosgraph_msgs.msg import Clock
+from std_msgs.msg import Float64MultiArray
 
 from mm_bringup.process_graph import ProcessGraph, executable_path
 from mm_bringup.wheeled_container import SimClock, _fixed_clock
@@ -43,9 +46,9 @@ def test_three_nodes_in_one_process_on_the_simulators_clock(tmp_path):
             assert parameter(ros, node, 'sensor_manifold', 'use_sim_time').bool_value is True
             assert parameter(ros, node, 'switching_controller', 'exploration_steps').integer_value == 50
             assert parameter(ros, node, 'wheeled_sim', 'dt').double_value == 0.1
-            # one /clock subscription serves both nodes on the simulator's clock
+            # the nodes on the simulator's clock take it in the process: none of them subscribes to /clock
             clock_takers = [i.node_name for i in node.get_subscriptions_info_by_topic('/clock')]
-            assert sorted(n for n in clock_takers if n in NODES) == ['switching_controller'], clock_takers
+            assert not [n for n in clock_takers if n in NODES], clock_takers
             assert container.process.poll() is None
     finally:
         ros.close()
@@ -60,23 +63,32 @@ def test_a_refused_parameter_ends_the_container_with_one_line():
         result.stderr
 
 
-def test_nodes_sharing_the_sim_clock_follow_one_subscription_and_keep_it():
+def test_composed_nodes_run_on_the_simulators_clock_without_a_subscription_and_keep_it():
+    """SimClock: the nodes' clocks read the simulator's time from the moment they are attached and follow each step
+    it publishes, with no /clock subscription; use_sim_time cannot be switched off."""
     ros = RosHarness()
     try:
+        sim = ros.add(WheeledSim(context=ros.context, parameter_overrides=[Parameter('republish_period', value=60.0)]))
+        shared = SimClock()
+        shared.follow(sim)
         sim_time = [Parameter('use_sim_time', value=True)]
         first, second = (ros.node(name, sim_time) for name in ('first', 'second'))
-        shared = SimClock()
         for node in (first, second):
             shared.share(node)
             node.add_on_set_parameters_callback(_fixed_clock)
-        publisher = ros.node('clock_source')
-        assert [i.node_name for i in publisher.get_subscriptions_info_by_topic('/clock')] == ['first']
-        set_time = ros.sim_clock(publisher, first)
-        set_time(7)
-        assert second.get_clock().now().nanoseconds == 7 * 10 ** 9
+        probe = ros.node('probe')
+        assert not probe.get_subscriptions_info_by_topic('/clock')
+        assert first.get_clock().now().nanoseconds == second.get_clock().now().nanoseconds == sim.sim_time_ns
+        command = probe.create_publisher(Float64MultiArray, 'wheeled/wheel_velocity_controller/commands', 10)
+        before = sim.step_index
+        for step in range(1, 4):
+            command.publish(Float64MultiArray(data=[1.0, 1.0]))
+            assert ros.spin_until(lambda: sim.step_index == before + step, 10.0)
+            assert first.get_clock().now().nanoseconds == second.get_clock().now().nanoseconds == sim.sim_time_ns > 0
         result = second.set_parameters([Parameter('use_sim_time', value=False)])[0]
         assert not result.successful and 'fixed' in result.reason
-        set_time(9)
-        assert second.get_clock().now().nanoseconds == 9 * 10 ** 9
+        command.publish(Float64MultiArray(data=[1.0, 1.0]))
+        assert ros.spin_until(lambda: sim.step_index == before + 4, 10.0)
+        assert second.get_clock().now().nanoseconds == sim.sim_time_ns
     finally:
         ros.close()

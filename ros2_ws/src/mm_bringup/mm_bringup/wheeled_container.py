@@ -8,9 +8,10 @@ thread instead of waking three processes in turn (graph rate in README, issue 14
 to whatever else runs, e.g. the demo's arm). Parameters: the nodes' own files with `--params-file` (keyed by node
 name, as wheeled_sim.yaml is) or `-p <node>:<name>:=<value>`; a bare `-p name:=value` reaches all three. The
 simulator owns `/clock` and the two others run on it: use_sim_time is false for wheeled_sim and true for the others
-whatever the arguments say, and cannot be changed while they run. The two share one `/clock` subscription (the
-controller's; the learner's clock is attached to it): one delivery of the simulator's clock per step instead of two
-(README, issue 14).
+whatever the arguments say, and cannot be changed while they run. They take the simulator's clock from it in this
+process as it publishes /clock (what rclcpp's intra-process delivery would do), not through /clock subscriptions of
+their own: no delivery of /clock per step, and their clocks never lag behind the readings (README, issue 14). /clock
+is published as before for every other process.
 
 `--wait-for-subscriber NODE` (before `--ros-args`): the nodes are created in the loop's order (simulator,
 controller, learner, which closes the loop), each once the node NODE (e.g. a recorder in another process)
@@ -27,6 +28,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSCompatibility, qos_check_compatible
+from rclpy.time_source import TimeSource
 from rclpy.utilities import remove_ros_args
 
 from mm_common.node_utils import run_nodes
@@ -36,31 +38,37 @@ from mm_sim.wheeled_sim_node import WheeledSim
 
 
 def _fixed_clock(params) -> SetParametersResult:
-    """On-set callback: the clock a composed node runs on is fixed (a shared /clock subscription serves it)."""
+    """On-set callback: the clock a composed node runs on is fixed (the simulator sets it in this process)."""
     if any(p.name == 'use_sim_time' for p in params):
         return SetParametersResult(successful=False, reason='use_sim_time is fixed in wheeled_container')
     return SetParametersResult(successful=True)
 
 
 class SimClock:
-    """One /clock subscription for the composed nodes on the simulator's clock: the first node's time source keeps
-    its subscription and every later node's clock is attached to it (rclpy has no public handle on a node's time
-    source: this is the one place that reaches `Node._time_source`)."""
+    """The composed nodes on the simulator's clock: one time source, subscribed to nothing, set by the simulator in
+    this process each time it publishes /clock (WheeledSim.clock_listeners); each node's own time source drops its
+    /clock subscription and the node's clock is attached to the shared one. (rclpy has no public handle on a node's
+    time source: this is the one place that reaches `Node._time_source`.)"""
 
     def __init__(self):
-        self.source = None
+        self.source = TimeSource()
+        self.source.ros_time_is_active = True       # with no node it subscribes to nothing
+
+    def follow(self, sim: WheeledSim) -> None:
+        """Run on `sim`'s clock: from its current time on, set each time it publishes /clock."""
+        self.source.clock_callback(sim.clock_msg)
+        sim.clock_listeners.append(self.source.clock_callback)
 
     def share(self, node: Node) -> None:
-        if self.source is None:
-            self.source = node._time_source
-        else:
-            node._time_source.detach_node()         # drops its own /clock subscription
-            self.source.attach_clock(node.get_clock())
+        node._time_source.detach_node()             # drops its /clock subscription
+        self.source.attach_clock(node.get_clock())
 
 
 def _on_clock(node_class, sim_time: bool, sim_clock: SimClock):
     def factory():
         node = node_class(parameter_overrides=[Parameter('use_sim_time', value=sim_time)])
+        if isinstance(node, WheeledSim):
+            sim_clock.follow(node)
         if sim_time:
             sim_clock.share(node)
         # Runs before the time source's own callback (rclpy calls the newest first) and refuses the change, so no

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import List
+from typing import Callable, List
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -138,6 +138,9 @@ class WheeledSim(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.clock_pub = self.create_publisher(Clock, '/clock', LOOP_QOS)
+        # Called with each /clock message as it is published: nodes composed with the simulator in one process take
+        # its clock here instead of through their own /clock subscription (mm_bringup wheeled_container).
+        self.clock_listeners: List[Callable[[Clock], None]] = []
         self.range_pubs = [self.create_publisher(Range, f'wheeled/range/{s.name}', LOOP_QOS) for s in sensors]
         self.range_group_pub = self.create_publisher(RangeGroup, 'wheeled/ranges', LOOP_QOS)
         self.bumper_pub = self.create_publisher(Bool, 'wheeled/bumper', LOOP_QOS)
@@ -302,6 +305,8 @@ class WheeledSim(Node):
         stamp = _stamp(self.sim_time_ns)
         self.clock_msg.clock = stamp
         self.clock_pub.publish(self.clock_msg)
+        for listener in self.clock_listeners:
+            listener(self.clock_msg)
         readings = self.robot.read(self.pose).tolist()
         for pub, msg, value in zip(self.range_pubs, self.range_msgs, readings):
             msg.header.stamp = stamp
