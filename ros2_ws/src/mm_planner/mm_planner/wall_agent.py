@@ -298,7 +298,7 @@ class WallAgent:
             command, error, target = self._reach(state)
         self.phase_step += 1
         if command is not None:
-            if not np.all(np.isfinite(command)):
+            if not all(map(math.isfinite, np.asarray(command, dtype=float).tolist())):    # plain Python: every step
                 # Never send a non-finite wheel command; standing still keeps the lockstep loop going.
                 self._log.append(f'non-finite command {list(command)} replaced by a stop')
                 command = np.zeros(2)
