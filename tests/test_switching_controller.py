@@ -464,6 +464,24 @@ def test_blind_reads_lost_readings_as_unknown_not_out_of_range():
     assert blind([math.nan] * 5)                                     # nothing at all seen
 
 
+def test_a_lost_reading_stands_for_the_sensors_last_one_when_judging_blindness():
+    """sees_nothing: a sensor last out of range whose reading is lost does not make its group look in range (under
+    dropout one such step ended a blind stretch and cut the watchdog's way back short); after hold_steps lost steps
+    the reading is unknown again, and a sensor never read is unknown from the start."""
+    c = SwitchingController(0.05, hold_steps=2)
+    side_front_only = [math.inf, math.inf, 0.2, 0.14, math.inf]
+    assert c.sees_nothing(side_front_only)
+    lost_rear = [math.inf, math.inf, 0.2, 0.14, math.nan]
+    assert blind(lost_rear) is False                              # alone, the lost reading counts as unknown
+    assert c.sees_nothing(lost_rear) and c.sees_nothing(lost_rear)  # held: side_rear is still out of range
+    assert not c.sees_nothing(lost_rear)                            # a third lost step: unknown again
+    assert not c.sees_nothing([math.inf, math.inf, 0.2, 0.14, 0.1])
+    assert not c.sees_nothing(lost_rear)                            # held in range now
+    assert not SwitchingController(0.05).sees_nothing([math.inf, math.inf, 0.2, 0.14, math.nan])
+    with pytest.raises(ValueError):
+        SwitchingController(0.05, hold_steps=-1)
+
+
 def test_retracing_the_blind_commands_puts_the_robot_back_exactly():
     """The watchdog's way back: the blind commands reversed (sped up to the wheel limit) retrace the same arcs."""
     robot = WheeledRobot()

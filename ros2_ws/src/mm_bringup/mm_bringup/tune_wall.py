@@ -92,15 +92,18 @@ def evaluate(robot: WheeledRobot, dt: float, model, tasks: int, tolerance: float
 
 
 def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, model_params=None,
-             explorer_params=None, rehearsals=None, noisy: bool = False, controller_params=None) -> Dict:
+             explorer_params=None, rehearsals=None, noisy: bool = False, controller_params=None,
+             learn_controller_params=None) -> Dict:
     """Learn as the graph does and run the tasks (`noisy`: the benchmark's reading noise and dropout, goals and
-    success judged on noise-free readings as there)."""
+    success judged on noise-free readings as there). `learn_controller_params`: the controller settings the learning
+    (its rehearsals) runs with, when not those under test: every setting is then judged on the same model."""
     t0 = time.monotonic()
     noise = dict(noise_range_fraction=NOISE['std_fraction_of_max_range'], dropout=NOISE['dropout'],
                  random_state=seed) if noisy else {}
     robot, dt, start = robot_variant(layout, robot_name, **noise)
+    learning_controller = controller_params if learn_controller_params is None else learn_controller_params
     learned = learn(robot, steps, dt, seed, start, max_samples=max_samples, model_params=model_params,
-                    explorer_params=explorer_params, rehearsals=rehearsals, controller_params=controller_params)
+                    explorer_params=explorer_params, rehearsals=rehearsals, controller_params=learning_controller)
     model, samples = learned.fitted, learned.samples
     # Tasks are run with the last model fitted even when it was not announced (as if it had been): success_if_used
     # against the held-out error is what the readiness bound is chosen from; `success` counts a model the agent did
@@ -219,6 +222,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help='SensorManifoldModel hyperparameter sets to compare (e.g. {"heldout_bound": 1.0})')
     parser.add_argument('--controller', nargs='+', type=json.loads, default=[{}],
                         help='SwitchingController hyperparameter sets to compare (e.g. {"retrace_history_steps": 5})')
+    parser.add_argument('--learn-controller', type=json.loads, default=None, metavar='JSON',
+                        help='SwitchingController settings the learning (its rehearsals) uses for every --controller '
+                        'set: each set is judged on the same model (default: each learns with its own)')
     parser.add_argument('--rehearsals', nargs='+', type=int, default=[None],
                         help="WallAgent rehearsals to compare (default: the agent's own default)")
     parser.add_argument('--noisy', action='store_true',
@@ -277,9 +283,10 @@ def main(argv: Optional[List[str]] = None) -> int:
                                 row = run_cell(layout, robot, seed, args.steps, args.tasks, args.tolerance,
                                                args.max_samples, model_params=model_params, explorer_params=params,
                                                rehearsals=rehearsals, noisy=args.noisy,
-                                               controller_params=controller_params)
+                                               controller_params=controller_params,
+                                               learn_controller_params=args.learn_controller)
                                 row.update(explorer=params, rehearsals=rehearsals, model=model_params,
-                                           controller=controller_params)
+                                           controller=controller_params, learn_controller=args.learn_controller)
                                 print(json.dumps(row), flush=True)
                                 rows.append(row)
     return _write(args, rows, summarize(rows, args.rule), RULES[args.rule])

@@ -90,7 +90,9 @@ class SwitchingController:
     stops short of the practised exit) and blind_budget (a stretch past a replay that ran out, out and back, in
     multiples of the route's practised blind length; issue 11's target is 2. 0, the default: only the watchdog's
     limit. At 2 the wall benchmark's clean `paper` cells had half as many episodes blind over 2x at the same success,
-    but its noisy cells 4 points less success: README, "Never wander blind")."""
+    but its noisy cells 4 points less success: README, "Never wander blind"), hold_steps (sees_nothing: a lost reading
+    stands for the sensor's last one for this many steps when judging whether a group sees the wall, the learner's
+    StateTracker default)."""
 
     def __init__(self, dt: float, max_wheel_speed: float = 6.0, horizon: int = 12,
                  speed_levels=(1.0, 0.4, 0.12, 0.0), travel_weight: float = 1e-3, tolerance: float = 0.01,
@@ -99,7 +101,7 @@ class SwitchingController:
                  max_settle_steps: int = 30, manoeuvre_travel_weight: float = 1e-2, blind_factor: float = 1.5,
                  blind_margin_steps: int = 20, blind_prediction_cap: int = 100, retrace_history_steps: int = 5,
                  replay_routes: bool = True, exit_tolerance: float = 0.05, exit_holds: int = 5,
-                 blind_budget: float = 0.0):
+                 blind_budget: float = 0.0, hold_steps: int = 3):
         if dt <= 0 or max_wheel_speed <= 0 or tolerance <= 0 or horizon < 1:
             raise ValueError('dt, max_wheel_speed, tolerance and horizon must be positive')
         if travel_weight < 0 or manoeuvre_travel_weight < 0:
@@ -113,8 +115,8 @@ class SwitchingController:
                              'retrace_history_steps >= 1')
         if not exit_tolerance > 0:
             raise ValueError('exit_tolerance must be positive')
-        if exit_holds < 0 or not (blind_budget == 0 or blind_budget >= 1):
-            raise ValueError('need exit_holds >= 0 and blind_budget 0 (off) or >= 1')
+        if exit_holds < 0 or not (blind_budget == 0 or blind_budget >= 1) or hold_steps < 0:
+            raise ValueError('need exit_holds >= 0, blind_budget 0 (off) or >= 1 and hold_steps >= 0')
         self.dt = dt
         self.max_wheel_speed = max_wheel_speed
         self.horizon = horizon
@@ -135,6 +137,8 @@ class SwitchingController:
         self.exit_tolerance = exit_tolerance
         self.exit_holds = exit_holds
         self.blind_budget = blind_budget
+        self.hold_steps = hold_steps
+        self._held: list = []               # each sensor's last reading and how many steps it has been lost since
         self._plan: Optional[np.ndarray] = None
         levels = sorted({s * max_wheel_speed * sign for s in speed_levels for sign in (-1, 1)})
         self.candidates = np.array(list(product(levels, levels)), dtype=float)
@@ -329,6 +333,25 @@ class SwitchingController:
         u = J.T @ np.linalg.solve(J @ J.T + self.damping * np.eye(len(error)), error / (self.horizon * self.dt))
         peak = np.max(np.abs(u))
         return u * (self.max_wheel_speed / peak) if peak > self.max_wheel_speed else u
+
+    def sees_nothing(self, readings) -> bool:
+        """blind() of the readings with each lost one (NaN) standing for the sensor's last reading for up to
+        hold_steps steps, as the learner's StateTracker bridges them. A sensor out of range whose reading is lost stays
+        out of range, so its group does not look in range on the strength of its other sensor alone: under 5 %
+        dropout one such step ended a blind stretch, the watchdog's way back then began there, and the robot retraced
+        only into the blind region ('lost'; README, "Never wander blind")."""
+        values = [float(v) for v in readings]
+        if len(self._held) != len(values):
+            self._held = [[math.nan, 0] for _ in values]
+        for i, v in enumerate(values):
+            held = self._held[i]
+            if math.isnan(v):
+                held[1] += 1
+                if held[1] <= self.hold_steps:
+                    values[i] = held[0]
+            else:
+                held[0], held[1] = v, 0
+        return blind(values)
 
     def command(self, space: int, coordinates: Optional[np.ndarray], sensor2: Optional[np.ndarray],
                 virtual_field, sensor2_field, sensor1_jacobian: Optional[np.ndarray] = None,

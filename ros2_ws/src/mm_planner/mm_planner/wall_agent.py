@@ -32,7 +32,7 @@ import numpy as np
 from mm_msgs.msg import ControllerStatus, ManifoldState
 
 from mm_planner.exploration import RandomExplorer
-from mm_planner.switching_controller import SwitchingController, blind
+from mm_planner.switching_controller import SwitchingController
 from mm_planner.wall_model import WallModel
 
 PHASE_NAMES = {getattr(ControllerStatus, n): n[len('PHASE_'):] for n in dir(ControllerStatus) if n.startswith('PHASE_')}
@@ -434,7 +434,7 @@ class WallAgent:
         J1 = m.sensor1_jacobian(coords) if space == ManifoldState.SPACE_SENSOR1 and coords is not None else None
         measured = bool(np.all(np.isfinite(np.asarray(state.readings, dtype=float)[3:5])))
         u, done, error = c.command(space, coords, s2, m.virtual_field, m.sensor2_field, J1, m.virtual_bounds,
-                                   m.sensor2_box, sensor2_measured=measured, blind=blind(state.readings))
+                                   m.sensor2_box, sensor2_measured=measured, blind=c.sees_nothing(state.readings))
         target = c.goal_sensor2 if space == ManifoldState.SPACE_SENSOR2 else (c.target if c.target is not None else ())
         target = tuple(float(v) for v in target)
         if done:
