@@ -17,7 +17,7 @@ import time
 from typing import Dict, List, Optional
 
 import rclpy
-from mm_common.node_utils import declare
+from mm_common.node_utils import declare, dump_stacks_on_request
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
@@ -135,6 +135,7 @@ def main(args=None):
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, lambda *_: stop.set())
+    dump_stacks_on_request()
     node = None
     ok = False
     try:

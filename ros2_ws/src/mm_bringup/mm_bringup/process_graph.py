@@ -133,11 +133,14 @@ class ProcessGraph:
         return {n.label: n.process is not None and n.process.poll() is None for n in self.nodes}
 
     def stop(self, node: NodeProcess, timeout: float = 10.0) -> Optional[int]:
-        """SIGINT like Ctrl-C in `ros2 launch`, escalate to SIGTERM then SIGKILL; return the exit code."""
+        """SIGINT like Ctrl-C in `ros2 launch`, escalate to SIGTERM then SIGKILL; return the exit code. Before
+        escalating, SIGUSR1 has the node write every thread's stack to its log (node_utils.dump_stacks_on_request):
+        where a node that ignored SIGINT is stuck."""
         proc = node.process
         if proc is None:
             return None
-        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 3.0), (signal.SIGKILL, 3.0)):
+        escalation = ((signal.SIGINT, timeout), (signal.SIGUSR1, 1.0), (signal.SIGTERM, 3.0), (signal.SIGKILL, 3.0))
+        for sig, wait in escalation:
             if proc.poll() is not None:
                 break
             try:

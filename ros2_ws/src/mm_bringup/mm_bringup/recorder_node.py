@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Dict, List
 
 import rclpy
-from mm_common.node_utils import declare, reject_non_finite
+from mm_common.node_utils import declare, dump_stacks_on_request, reject_non_finite
 from mm_common.rosbag import BagError, BagWriter, QosSummary, adapt_offered_qos
 from rclpy.exceptions import InvalidHandle, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -236,6 +236,7 @@ def main(args=None):
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, lambda *_: stop.set())
+    dump_stacks_on_request()
     node = None
     status = 0
     try:

@@ -2,6 +2,7 @@
 checks for on-set callbacks and throttled logging of rejected input."""
 from __future__ import annotations
 
+import faulthandler
 import math
 import signal
 import sys
@@ -47,6 +48,14 @@ def wait_for_acknowledgements(nodes: Sequence[Node], seconds: float) -> None:
                 return          # the context went away (external shutdown): nothing left to wait for
 
 
+def dump_stacks_on_request() -> None:
+    """`kill -USR1 <pid>` writes every thread's Python stack to the process's stderr (a node's log) and the process
+    goes on: what a node that does not stop is doing. faulthandler writes from its own C handler, so this works even
+    while the main thread is stuck in C code, where a Python signal handler never runs (a recorder of a fresh-clone
+    test run ignored SIGINT and SIGTERM once, README issue 13). ProcessGraph.stop sends it before SIGTERM."""
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
+
+
 def run_nodes(node_factories: Sequence[Callable[[], Node]], args: Optional[Sequence[str]] = None,
               create_when: Optional[Callable[[Sequence[Node]], bool]] = None) -> None:
     """Spin the nodes (one, or several composed in one process) in one executor until SIGINT/SIGTERM/SIGHUP or
@@ -70,6 +79,7 @@ def run_nodes(node_factories: Sequence[Callable[[], Node]], args: Optional[Seque
     stop = threading.Event()
     for sig in _STOP_SIGNALS:
         signal.signal(sig, lambda *_: stop.set())
+    dump_stacks_on_request()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     nodes = []
     executor = None
