@@ -756,7 +756,8 @@ def test_player_rejects_broken_bags_and_bad_parameters_then_plays_a_valid_bag(tm
         received: list = []
         client.create_subscription(Float64MultiArray, VALID_TOPIC, received.append,
                                    QoSProfile(depth=100, reliability=RELIABLE))
-        rc, log = _play(ros, graph, valid, {'start_delay': 3.0})
+        # starts once the subscription above has matched (a fixed delay was once too short under a loaded gate)
+        rc, log = _play(ros, graph, valid, {'start_delay': 30.0, 'wait_for_subscribers': 1})
         ros.spin_until(lambda: len(received) >= 5, 10.0)
         if rc != 0 or len(received) != 5:
             failures.append(Failure('player', 'valid bag', f'exit status {rc}, {len(received)} of 5 received',
