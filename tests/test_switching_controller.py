@@ -697,10 +697,10 @@ def test_the_watchdog_brings_the_robot_back_when_the_route_is_wrong(paper_robot_
     robot, model = paper_robot_and_model
     wrong = leading_nowhere(robot, model)
     goal_reading = sensor2_goal_reading(robot, (0.0, 0.12, 0.0))
-    # Each route costs up to its blind limit out and as much back (about 340 steps here): four need more than the
-    # default 1 500 steps.
+    # Each route costs up to its blind limit out and as much back (about 340 steps here): four (max_retries 3) need
+    # more than the default 1 500 steps; with the default 7 retries eight would need about 2 700.
     episode = run_episode(robot, model, PAPER_START, goal_reading, tolerance=0.005, dt=DT, wall_model=wrong,
-                          max_steps=3000)
+                          max_steps=3000, controller_params={'max_retries': 3})
     assert not episode.reached
     assert 'blind longer than predicted' in episode.detail, episode.detail
     assert episode.watchdog_returns >= 1
