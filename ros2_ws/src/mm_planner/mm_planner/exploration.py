@@ -32,8 +32,6 @@ import numpy as np
 from mm_common.wheeled_sensors import SENSOR1, SENSOR2
 
 # The paper's exploration ("collecting samples by random motion"): RandomExplorer hyperparameters without direction.
-# The groups' indices as index arrays, made once: the explorer runs every step, and numpy's per-call overhead on a
-# few readings (a list to index with, np.all's dispatch) costs the lockstep loop more than the work itself.
 UNDIRECTED = {'approach_probability': 0.0, 'excursion_share': 0.0}
 
 
