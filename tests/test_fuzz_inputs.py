@@ -37,6 +37,7 @@ from std_msgs.msg import Bool, Float64MultiArray, Header, String
 from mm_bringup.process_graph import NodeProcess, ProcessGraph
 from mm_common.rosbag import iter_messages
 from mm_common.ros_harness import RosHarness
+from mm_common.wheeled_sensors import range_group
 from mm_sim.arm_model import ArmModel
 
 FAR_FUTURE_SEC = 2**31 - 1
@@ -511,12 +512,9 @@ def _ranges(k: int) -> list:
 
 
 def _range_group(k: int) -> RangeGroup:
-    ranges = [msg for _, msg in _ranges(k)]
-    return RangeGroup(header=_header(k), names=[name for name, _ in WHEELED_SENSORS],
-                      frame_ids=[r.header.frame_id for r in ranges], radiation_type=[r.radiation_type for r in ranges],
-                      field_of_view=[r.field_of_view for r in ranges], min_range=[r.min_range for r in ranges],
-                      max_range=[r.max_range for r in ranges], range=[r.range for r in ranges],
-                      variance=[r.variance for r in ranges])
+    group = range_group([name for name, _ in WHEELED_SENSORS], [msg for _, msg in _ranges(k)])
+    group.header = _header(k)
+    return group
 
 
 def _manifold_state(k: int) -> ManifoldState:

@@ -18,7 +18,7 @@ from std_msgs.msg import Float64MultiArray
 
 from mm_bringup.wall_experiment import explore
 from mm_manifold.sensor_manifold import SPACE_NONE, SPACE_SENSOR1, SPACE_VIRTUAL, SensorManifoldModel
-from mm_common.wheeled_sensors import SENSOR_NAMES
+from mm_common.wheeled_sensors import SENSOR_NAMES, range_group
 from mm_manifold.sensor_manifold_node import SensorManifold
 from mm_sim.wheeled_model import WheeledRobot
 
@@ -42,11 +42,8 @@ def model_file(tmp_path_factory):
 
 def group_of(ranges) -> RangeGroup:
     """The RangeGroup of the five sensors' Range messages (SENSOR_NAMES order), as wheeled_sim groups them."""
-    return RangeGroup(names=list(SENSOR_NAMES), frame_ids=[r.header.frame_id for r in ranges],
-                      radiation_type=[r.radiation_type for r in ranges],
-                      field_of_view=[r.field_of_view for r in ranges], min_range=[r.min_range for r in ranges],
-                      max_range=[r.max_range for r in ranges], range=[r.range for r in ranges],
-                      variance=[r.variance for r in ranges])
+    return range_group(SENSOR_NAMES, ranges)
+
 
 class Rig:
     def __init__(self, params=None):

@@ -31,7 +31,7 @@ from geometry_msgs.msg import Point
 from mm_common.node_utils import (array_problem, check_parameters, declare, publish_if_subscribed, reject_input,
                                   run_node)
 from mm_common.qos import LOOP_QOS  # RELIABLE, deep history: see mm_common/qos.py
-from mm_common.wheeled_sensors import SENSOR_NAMES
+from mm_common.wheeled_sensors import SENSOR_NAMES, range_group
 from mm_msgs.msg import RangeGroup
 from mm_msgs.srv import ResetPose
 from nav_msgs.msg import Odometry
@@ -162,12 +162,7 @@ class WheeledSim(Node):
             m.max_range = float(s.max_range)
             self.range_msgs.append(m)
         # the same readings, one array per Range field (only `range` changes from step to step)
-        self.range_group = RangeGroup(
-            names=[s.name for s in sensors], frame_ids=[m.header.frame_id for m in self.range_msgs],
-            radiation_type=[m.radiation_type for m in self.range_msgs],
-            field_of_view=[m.field_of_view for m in self.range_msgs],
-            min_range=[m.min_range for m in self.range_msgs], max_range=[m.max_range for m in self.range_msgs],
-            range=[0.0] * len(sensors), variance=[m.variance for m in self.range_msgs])
+        self.range_group = range_group([s.name for s in sensors], self.range_msgs)
         self.odom_msg = Odometry()
         self.odom_msg.header.frame_id = 'world'
         self.odom_msg.child_frame_id = 'base_link'
