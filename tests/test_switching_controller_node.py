@@ -19,6 +19,7 @@ from std_msgs.msg import Bool, Float64MultiArray
 from mm_bringup.wall_experiment import (PAPER_START, as_published, explore, model_message, run_episode,
                                         sensor2_goal_reading)
 from mm_manifold.sensor_manifold import SPACE_SENSOR1, SensorManifoldModel, StateTracker
+from mm_planner.exploration import UNDIRECTED
 from mm_planner.switching_controller_node import SwitchingControllerNode
 from mm_sim.wheeled_model import WheeledRobot
 
@@ -362,7 +363,8 @@ def test_parameter_updates_are_validated():
         assert not node.set_parameters([Parameter('max_reach_steps', value=0)])[0].successful
         # Fixed at start-up (they would have no effect later): read-only.
         for name, value in (('dt', 0.1), ('exploration_steps', 5), ('random_seed', 3), ('max_exploration_steps', 20),
-                            ('exploration_approach_probability', 0.5), ('exploration_excursion_share', 0.2)):
+                            ('exploration_approach_probability', 0.5), ('exploration_excursion_share', 0.2),
+                            ('exploration_repeat_probability', 0.2)):
             assert not node.set_parameters([Parameter(name, value=value)])[0].successful, name
         assert not node.set_parameters([Parameter('max_exploration_steps', value=-1)])[0].successful
         assert not node.set_parameters([Parameter('max_exploration_steps', value=math.nan)])[0].successful
@@ -377,10 +379,10 @@ def test_parameter_updates_are_validated():
 
 def test_the_paper_s_undirected_exploration_and_blind_crossing_are_parameter_choices():
     rig = Rig({'exploration_steps': 0, 'exploration_approach_probability': 0.0, 'exploration_excursion_share': 0.0,
-               'replay_practised_routes': False})
+               'exploration_repeat_probability': 0.0, 'replay_practised_routes': False})
     try:
         explorer = rig.node.agent.explorer
-        assert explorer.approach_probability == 0.0 and explorer.excursion_share == 0.0
+        assert {name: getattr(explorer, name) for name in UNDIRECTED} == UNDIRECTED
         assert rig.node.agent._new_controller(0.01).replay_routes is False       # every reach and rehearsal
         assert not rig.node.set_parameters([Parameter('replay_practised_routes', value=True)])[0].successful
     finally:

@@ -93,11 +93,15 @@ class SwitchingControllerNode(Node):
         explorer_defaults = inspect.signature(RandomExplorer).parameters
         approach = declare(self, 'exploration_approach_probability', explorer_defaults['approach_probability'].default,
                            'Share of new excursions that first drive toward the wall (0 with exploration_excursion_'
-                           'share 0: the paper\'s undirected exploration); fixed at start-up', min_value=0.0,
-                           max_value=1.0, read_only=True)
+                           'share 0 and exploration_repeat_probability 0: the paper\'s undirected exploration); fixed '
+                           'at start-up', min_value=0.0, max_value=1.0, read_only=True)
         share = declare(self, 'exploration_excursion_share', explorer_defaults['excursion_share'].default,
                         'Excursions start whenever they have had less than this share of the exploration steps; '
                         'fixed at start-up', min_value=0.0, max_value=1.0, read_only=True)
+        repeat = declare(self, 'exploration_repeat_probability', explorer_defaults['repeat_probability'].default,
+                         'Share of new excursions that repeat, jittered, one that brought sensor 2 into range (0: '
+                         'always a new random one, as in the paper); fixed at start-up', min_value=0.0, max_value=1.0,
+                         read_only=True)
         rehearsals = declare(self, 'rehearsals', inspect.signature(WallAgent).parameters['rehearsals'].default,
                              'Practice reaches to practised sensor-2 readings a model the learner found ready must '
                              'pass before it is announced (0: the learner\'s held-out check decides alone); fixed at '
@@ -115,7 +119,8 @@ class SwitchingControllerNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.agent = WallAgent(self.dt, exploration_steps, max_wheel_speed, tolerance, max_reach_steps,
                                random_state=seed, max_exploration_steps=max_exploration or None,
-                               explorer_params={'approach_probability': approach, 'excursion_share': share},
+                               explorer_params={'approach_probability': approach, 'excursion_share': share,
+                                                'repeat_probability': repeat},
                                rehearsals=rehearsals,
                                controller_params={'replay_routes': replay, 'blind_budget': blind_budget})
 
