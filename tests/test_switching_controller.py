@@ -764,6 +764,25 @@ def test_a_ready_model_is_announced_only_after_its_rehearsals_reached(paper_robo
     assert {d.phase_name for d in decisions[:-1]} == {'REHEARSING'}
 
 
+def test_a_rehearsal_starts_where_both_groups_see_the_wall(paper_robot_and_model):
+    """Where the groups' ranges overlap the learner's state is sensor 2's, with sensor 1's coordinates measured too:
+    the rehearsal steers to its practised sensor-1 state from there instead of leaving the robot to the explorer (on
+    the overlap layout that once took the 1 500 steps a rehearsal has and rejected a good model). A state whose
+    sensor 1 does not see the wall still waits."""
+    robot, model = paper_robot_and_model
+    view = WallModel.from_msg(model_message(robot, model))
+    view.ready, view.readiness = True, ''
+    agent = WallAgent(DT, exploration_steps=0, rehearsals=1, random_state=0)
+    agent.step(Observation(model=view))
+    coordinates = np.asarray(view.region_anchors[0], dtype=float)
+    state = dict(state=True, space=SPACE_SENSOR2, coordinates=coordinates, sensor2_estimate=np.array([0.1, 0.1]),
+                 sensor1_range=group_range(robot, SENSOR1), learner_samples=1)
+    agent.step(Observation(readings=np.array([np.inf, 0.3, 0.3, 0.1, 0.1]), **state))
+    assert 'getting sensor 1 in range' in agent.detail, agent.detail
+    agent.step(Observation(readings=np.array([0.3, 0.3, 0.3, 0.1, 0.1]), **state))
+    assert 'going to the practised sensor-1 state' in agent.detail, agent.detail
+
+
 def test_a_model_whose_rehearsal_fails_is_rejected_and_explored_on(paper_robot_and_model):
     """Routes that lead nowhere (as in the watchdog test): the first rehearsal fails, the verdict rejects the model
     with the reason, and the agent explores on instead of ever waiting for a goal with it. No retries: only the

@@ -66,8 +66,12 @@ def test_paper_task_crosses_the_blind_region_and_ends_parallel(run):
     goal = sensor2_goal_reading(robot, GOAL_POSE)
     final = robot.read(ep.poses[-1], noisy=False)[list(SENSOR2)]
     assert np.max(np.abs(final - goal)) < TOLERANCE
-    assert abs(math.atan2(math.sin(ep.poses[-1][2]), math.cos(ep.poses[-1][2]))) < 0.15
-    assert ep.blind_fraction() > 0.0
+    # parallel as far as the goal says: within its tolerance both side readings allow |heading| up to
+    # atan(2 x tolerance / the side sensors' spacing) (tests/test_switching_controller.py, the same task in process)
+    side = [robot.sensors[i] for i in SENSOR2]
+    heading = abs(math.atan2(math.sin(ep.poses[-1][2]), math.cos(ep.poses[-1][2])))
+    assert heading < math.atan(2 * TOLERANCE / abs(side[0].x - side[1].x))
+    assert any(ep.blind) and ep.longest_blind[0] >= 1    # steps with no group in range, as the controller counts them
     spaces = [s for i, s in enumerate(ep.spaces) if i == 0 or s != ep.spaces[i - 1]]
     assert spaces[0] == 1 and 2 in spaces and spaces[-1] == 3, spaces
 

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any, List, Optional, Tuple, Union
 
 import numpy as np
+from mm_common.wheeled_sensors import SENSOR1
 from mm_msgs.msg import ControllerStatus, ManifoldState
 
 from mm_planner.exploration import RandomExplorer
@@ -354,7 +355,8 @@ class WallAgent:
             r.steps += 1
             if r.steps > self.max_reach_steps:
                 return self._reject(f'{number}: sensor 1 not in range after {self.max_reach_steps} steps', state)
-            in_range = state.space == ManifoldState.SPACE_SENSOR1 and state.coordinates is not None
+            in_range = state.coordinates is not None and (state.space == ManifoldState.SPACE_SENSOR1 or (
+                state.space == ManifoldState.SPACE_SENSOR2 and _sees(state.readings, SENSOR1)))
             if r.start is None and in_range:
                 r.start = np.asarray(r.model.region_anchors[int(self.rehearsal_rng.integers(
                     len(r.model.region_anchors)))], dtype=float)
@@ -473,6 +475,15 @@ def _settable(cls, params: Optional[dict], agents_own: Tuple[str, ...]) -> dict:
         raise ValueError(f'{cls.__name__} has no hyperparameter {", ".join(refused)} (or it cannot be set here: '
                          f'{", ".join(agents_own)} are the agent\'s own)')
     return params
+
+
+def _sees(readings, group) -> bool:
+    """Every sensor of `group` reads the wall in this step. Where both groups see it (layouts whose ranges overlap)
+    the learner's state is sensor 2's, with sensor 1's coordinates measured all the same: a rehearsal that waited for
+    the sensor-1 space there was left to the explorer, whose excursions into sensor 2's range kept it there (1 500
+    steps, a rejected model, on the overlap layout's graph test once excursions were repeated)."""
+    values = np.asarray(readings, dtype=float)[list(group)].tolist()
+    return all(map(math.isfinite, values))
 
 
 def _rounded(reading) -> list:
