@@ -481,7 +481,9 @@ def _sees(readings, group) -> bool:
     """Every sensor of `group` reads the wall in this step. Where both groups see it (layouts whose ranges overlap)
     the learner's state is sensor 2's, with sensor 1's coordinates measured all the same: a rehearsal that waited for
     the sensor-1 space there was left to the explorer, whose excursions into sensor 2's range kept it there (1 500
-    steps, a rejected model, on the overlap layout's graph test once excursions were repeated)."""
+    steps, a rejected model, on the overlap layout's graph test once excursions were repeated). Stricter than the
+    controller's group test in blind(), which lets a lost reading pass: with that one, a noisy tuning cell (seed 100,
+    default robot) began rehearsals on lost readings and needed 20 499 samples instead of 4 343."""
     values = np.asarray(readings, dtype=float)[list(group)].tolist()
     return all(map(math.isfinite, values))
 
