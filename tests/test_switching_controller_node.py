@@ -393,8 +393,10 @@ def test_the_paper_s_undirected_exploration_and_blind_crossing_are_parameter_cho
         assert rig.node.agent._new_controller(0.01).blind_budget == 0.0
     finally:
         rig.ros.close()
-    with pytest.raises(InvalidParameterValueException):          # out of range: refused at start-up
-        Rig({'exploration_excursion_share': 1.5})
+    for bad in ({'exploration_excursion_share': 1.5}, {'exploration_repeat_probability': 1.5},
+                {'exploration_repeat_probability': -0.1}, {'exploration_repeat_probability': math.nan}):
+        with pytest.raises(InvalidParameterValueException):      # out of range: refused at start-up
+            Rig(bad)
 
 
 def test_the_blind_budget_is_a_start_up_parameter_that_reaches_every_controller():
