@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from mm_bringup.wall_experiment import explore
+from mm_bringup.wall_experiment import explore, layout_robot
 from mm_manifold.dimension import LocalPCADimension
 from mm_manifold.grid import ElasticGrid
 from mm_manifold.jacobian import PolynomialJacobianField
@@ -430,8 +430,8 @@ def test_sensor2_reading_noise_is_learned(model, noisy_model, robot):
 def test_sensor1_measurement_gain_is_learned_from_the_readings(model, noisy_model, noisy_log, robot):
     """Clean readings are used as they are (gain exactly 1: the clean results stay what they were); noisy ones are
     blended with the prediction, with the gain a Kalman filter would reach for their noise and motion."""
-    assert model.sensor1_gain_ == 1.0
-    assert 0.3 < noisy_model.sensor1_gain_ < 0.8
+    assert model.sensor1_gain_ == 1.0 and model.rate_steps_ == 1       # one-step Jacobian rates, as before
+    assert 0.3 < noisy_model.sensor1_gain_ < 0.8 and noisy_model.rate_steps_ >= 2
     # noise only: the gain falls; the readings of a robot standing still are all noise, nothing to follow
     rng = np.random.default_rng(0)
     steady = np.full((500, 3), 0.5) + rng.normal(0, 0.01, (500, 3))
@@ -450,6 +450,35 @@ def test_sensor1_measurement_gain_is_learned_from_the_readings(model, noisy_mode
     clean.update(reading, None)
     np.testing.assert_allclose(clean.update(moved, np.zeros(2))[1],
                                model.grid_.transform(moved[list(SENSOR1)][None])[0], atol=1e-12)   # all of it
+
+
+
+def test_noisy_sensor1_jacobians_far_from_the_wall_come_from_rates_over_several_steps():
+    """Far from the wall one step moves the front readings less than their noise: on the `paper` layout's noisy
+    exploration, one-step rates gave Jacobians that sent tasks away from the wall. Rates over the span the learner
+    reads from the noise (rate_steps None) get the forward motion there right from the same samples; clean readings
+    keep one step (test_sensor1_measurement_gain_is_learned_from_the_readings)."""
+    robot, dt = layout_robot('paper', noise_range_fraction=NOISE_FRACTION, dropout=0.05, random_state=3)
+    log = explore(robot, 3000, random_state=3, dt=dt)
+    errors = {}
+    for rate_steps in (1, None):
+        m = SensorManifoldModel(dt, **({} if rate_steps is None else {'rate_steps': rate_steps})).fit(
+            log.readings, log.commands, log.continuous)
+        relative = []
+        for distance in np.linspace(0.6, 1.0, 9):
+            for heading in (-0.2, 0.0, 0.2):
+                pose = (0.0, float(distance), -math.pi / 2 + heading)
+                forward = fd_jacobian(robot, pose, SENSOR1) @ np.ones(2)
+                rc = m.grid_.transform(robot.read(pose, noisy=False)[list(SENSOR1)][None])[0]
+                predicted = inverse_jacobian(m.grid_, rc) @ m.regions1_.interpolate(rc) @ np.ones(2)
+                relative.append(np.linalg.norm(predicted - forward) / np.linalg.norm(forward))
+        errors[rate_steps] = float(np.median(relative))
+        assert m.rate_steps_ == (rate_steps or round(1 / m.sensor1_gain_))
+    # one step: further off than predicting no motion at all (measured 2.5); the learned span (4 steps here): 0.65
+    assert errors[1] > 1.0 and errors[None] < 0.5 * errors[1], errors
+    for bad in (0, 11, 2.5, True):
+        with pytest.raises(ValueError, match='rate_steps'):
+            SensorManifoldModel(DT, rate_steps=bad)
 
 
 # --- persistence -------------------------------------------------------------------------------------------------
@@ -484,6 +513,17 @@ def test_save_load_round_trip(model, tmp_path, robot):
     assert loaded.virtual_.mean_excursion_steps_ == model.virtual_.mean_excursion_steps_ >= 1
     np.testing.assert_array_equal(loaded.sensor2_noise_, model.sensor2_noise_)
     assert loaded.sensor1_gain_ == model.sensor1_gain_
+    assert meta['rate_steps'] == loaded.rate_steps_ == model.rate_steps_
+    spanned = copy.copy(model)
+    spanned.rate_steps_ = 3
+    spanned.save(path)
+    assert SensorManifoldModel.load(path).rate_steps_ == 3
+    with np.load(path, allow_pickle=False) as data:               # saved before the span was learned: one step
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(str(arrays['meta']))
+    del meta['rate_steps']
+    np.savez(path, **{**arrays, 'meta': np.array(json.dumps(meta))})
+    assert SensorManifoldModel.load(path).rate_steps_ == 1
 
 
 def test_load_rejects_missing_corrupt_and_foreign_files(model, tmp_path):
@@ -547,6 +587,8 @@ def test_load_rejects_missing_corrupt_and_foreign_files(model, tmp_path):
                                       'route_commands is not finite'),
         'negative noise': ({'meta': np.array(json.dumps({**meta, 'sensor2_noise': [-1.0, 0.0]}))}, 'sensor2_noise'),
         'gain above 1': ({'meta': np.array(json.dumps({**meta, 'sensor1_gain': 1.5}))}, 'sensor1_gain'),
+        'rate steps 0': ({'meta': np.array(json.dumps({**meta, 'rate_steps': 0}))}, 'rate_steps'),
+        'rate steps a float': ({'meta': np.array(json.dumps({**meta, 'rate_steps': 2.0}))}, 'rate_steps'),
         'zero excursion steps': ({'meta': np.array(json.dumps({**meta, 'mean_excursion_steps': 0.0}))},
                                  'mean_excursion_steps'),
         'zero scale': ({'field1_scale': np.zeros(2)}, 'field1_scale'),

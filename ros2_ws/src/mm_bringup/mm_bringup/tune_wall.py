@@ -117,7 +117,7 @@ def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, mod
                 heldout_sensor2_error=getattr(model, 'heldout_sensor2_error_', math.inf),
                 heldout_limit=getattr(model, 'heldout_limit_', 0.0),
                 heldout_reentry_error=getattr(model, 'heldout_reentry_error_', math.nan),
-                excursions=getattr(model, 'n_excursions_', 0),
+                excursions=getattr(model, 'n_excursions_', 0), rate_steps=getattr(model, 'rate_steps_', None),
                 sensor2_excursions=sum(1 for e in model.excursions_ if e.sensor2) if model is not None else 0,
                 overlap_samples=len(model.virtual_.overlap_sensor2_) if model is not None else 0, tolerance=tolerance,
                 success=rate if ready else 0.0, success_if_used=rate, median_path_ratio=ratio, median_error=err,

@@ -10,6 +10,7 @@ and the coordinates in it). Persistence: np.savez + JSON, no pickle, written ato
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 import zipfile
@@ -61,6 +62,7 @@ def find_excursions(R: np.ndarray, U: np.ndarray, continuous: np.ndarray) -> Lis
 
 
 NEGLIGIBLE_NOISE_GAIN = 0.99      # a gain this close to 1: the readings are used as they are
+MAX_RATE_STEPS = 10               # longest span of a sensor-1 rate (a gain near 0: readings that hardly move)
 
 
 def measurement_gain(S: np.ndarray, continuous: np.ndarray) -> float:
@@ -98,17 +100,25 @@ class SensorManifoldModel:
     route_travel_weight (VirtualSensorSpace.goal_route), validation_folds and heldout_bound (the model is ready only
     when the held-out sensor-2 error of VirtualSensorSpace.validate is at most heldout_bound x the span of the
     sensor-2 readings explored; chosen by mm_bringup.tune_wall), learn_measurement_gain (False: sensor1_gain_ = 1,
-    the readings as they are).
+    the readings as they are), rate_steps (consecutive steps each sensor-1 rate spans in the Jacobian fit,
+    _sensor1_rates; None: from the reading noise, 1 on clean readings).
     Learned: dimension_, grid_, field1_ (grid coords), regions1_, field2_ (sensor-2 readings), sensor1_gain_ (the
-    state tracker's measurement gain for sensor 1: measurement_gain), sensor2_noise_ (std
+    state tracker's measurement gain for sensor 1: measurement_gain), rate_steps_ (the steps a sensor-1 rate spanned),
+    sensor2_noise_ (std
     of the sensor-2 reading noise, estimated from consecutive samples), virtual_, n_samples_, n_excursions_,
     heldout_sensor2_error_ [m], heldout_reentry_error_ [grid units], heldout_count_, heldout_limit_ [m]."""
 
     def __init__(self, dt: float, grid_rows: int = 10, grid_cols: int = 10, jacobian_degree: int = 2,
                  virtual_prior_weight: float = 1.0, route_travel_weight: float = 5e-3, validation_folds: int = 3,
-                 heldout_bound: float = 0.5, learn_measurement_gain: bool = True, random_state: Optional[int] = 0):
+                 heldout_bound: float = 0.5, learn_measurement_gain: bool = True, rate_steps: Optional[int] = None,
+                 random_state: Optional[int] = 0):
         if validation_folds < 2 or not heldout_bound > 0:
             raise ValueError('validation_folds >= 2 and heldout_bound > 0 are required')
+        if rate_steps is not None and (isinstance(rate_steps, bool) or not isinstance(rate_steps, (int, np.integer))
+                                       or not 1 <= rate_steps <= MAX_RATE_STEPS):
+            raise ValueError(f'rate_steps must be an integer in [1, {MAX_RATE_STEPS}] or None (from the reading '
+                             f'noise), got {rate_steps!r}')
+        self.rate_steps = rate_steps
         self.validation_folds = validation_folds
         self.heldout_bound = heldout_bound
         self.learn_measurement_gain = learn_measurement_gain
@@ -135,14 +145,14 @@ class SensorManifoldModel:
             self.grid_rows, self.grid_cols, random_state=self.random_state).fit(S1)
 
         step = continuous[:-1]
-        pair1 = step & in1[:-1] & in1[1:]
-        C0 = self.grid_.transform(R[:-1][pair1][:, list(SENSOR1)])
-        C1 = self.grid_.transform(R[1:][pair1][:, list(SENSOR1)])
-        rates1 = (C1 - C0) / self.dt
-        self.field1_ = PolynomialJacobianField(self.jacobian_degree).fit(C0, U[:-1][pair1], rates1)
+        gain = measurement_gain(R[:, list(SENSOR1)], continuous)
+        self.sensor1_gain_ = gain if self.learn_measurement_gain else 1.0
+        self.rate_steps_ = self.rate_steps or int(round(1.0 / max(gain, 1.0 / MAX_RATE_STEPS)))
+        C0, U0, rates1 = self._sensor1_rates(R, U, continuous, in1)
+        self.field1_ = PolynomialJacobianField(self.jacobian_degree).fit(C0, U0, rates1)
         node_coords = np.stack(np.meshgrid(np.arange(self.grid_rows), np.arange(self.grid_cols), indexing='ij'),
                                axis=-1).reshape(-1, 2).astype(float)
-        self.regions1_ = RegionJacobians(bandwidth=0.8).fit(C0, U[:-1][pair1], rates1, node_coords)
+        self.regions1_ = RegionJacobians(bandwidth=0.8).fit(C0, U0, rates1, node_coords)
 
         in2 = group_in_range(R, SENSOR2)
         pair2 = step & in2[:-1] & in2[1:]
@@ -155,7 +165,6 @@ class SensorManifoldModel:
         else:
             self.field2_ = None
         self.sensor2_noise_ = self._reading_noise(R[:, list(SENSOR2)], U, pair2)
-        self.sensor1_gain_ = measurement_gain(R[:, list(SENSOR1)], continuous) if self.learn_measurement_gain else 1.0
 
         excursions = []
         for exit_k, reentry, last in find_excursions(R, U, continuous):
@@ -180,6 +189,29 @@ class SensorManifoldModel:
         span = self.sensor2_box_[1] - self.sensor2_box_[0]
         self.heldout_limit_ = float(self.heldout_bound * np.max(span)) if np.all(np.isfinite(span)) else 0.0
         return self
+
+    def _sensor1_rates(self, R: np.ndarray, U: np.ndarray, continuous: np.ndarray, in1: np.ndarray):
+        """(grid coordinates, mean command, coordinate rate) over every chain of `rate_steps` consecutive steps that
+        begins and ends in sensor-1 range, for the sensor-1 Jacobians. One step is the finest, but a reading's noise
+        enters a one-step rate divided by one step's motion: far from the wall, where a step moves the readings
+        least, the benchmark's 1 % noise outweighed the motion, the Jacobians there pointed the wrong way and tasks
+        that started there drove away from the wall (a noisy tuning model reached 4 of 20 tasks, 20 of 20 with the
+        same samples over two to four steps). With rate_steps None the span is 1 / the measurement gain, rounded:
+        about the steps of motion it takes to move the readings as far as their noise (measurement_gain's q and r:
+        the gain is near sqrt(q / r) when the noise dominates); 1 on clean readings (gain 1), whose one-step rates
+        are exact where longer spans bend with the path (fast turns). On noisy tuning cells (results/
+        tune_wall_rate_steps.json) mean success 0.92 with one step against 0.97 over two or four. At most
+        MAX_RATE_STEPS."""
+        h = self.rate_steps_
+        k = np.arange(len(R) - h)
+        linked = in1[k] & in1[k + h]
+        for j in range(h):
+            linked &= continuous[k + j]
+        k = k[linked]
+        C0 = self.grid_.transform(R[k][:, list(SENSOR1)])
+        Ch = self.grid_.transform(R[k + h][:, list(SENSOR1)])
+        mean_command = np.mean([U[k + j] for j in range(h)], axis=0).reshape(-1, U.shape[1])
+        return C0, mean_command, (Ch - C0) / (h * self.dt)
 
     def _reading_noise(self, S: np.ndarray, U: np.ndarray, pair: np.ndarray) -> np.ndarray:
         """Std of the reading noise per sensor. The one-step prediction error e_k = s_{k+1} - s_k - J u_k dt holds
@@ -252,6 +284,7 @@ class SensorManifoldModel:
                 'virtual_prior_weight': self.virtual_prior_weight,
                 'route_travel_weight': self.route_travel_weight, 'dimension': int(self.dimension_),
                 'sensor2_noise': [float(v) for v in self.sensor2_noise_], 'sensor1_gain': self.sensor1_gain_,
+                'rate_steps': self.rate_steps_,
                 'grid_residual': self.grid_.residual_, 'n_samples': self.n_samples_,
                 'n_excursions': self.n_excursions_,
                 'reentry_rms_before': self.virtual_.reentry_rms_before_,
@@ -364,6 +397,10 @@ class SensorManifoldModel:
         if not (_number(meta['sensor1_gain']) and 0 < meta['sensor1_gain'] <= 1):
             raise ValueError(f"sensor1_gain {meta['sensor1_gain']!r} must be in (0, 1]")
         model.sensor1_gain_ = float(meta['sensor1_gain'])
+        rate_steps = meta.get('rate_steps', 1)          # files saved before the span was learned used one step
+        if not isinstance(rate_steps, int) or isinstance(rate_steps, bool) or not 1 <= rate_steps <= MAX_RATE_STEPS:
+            raise ValueError(f'rate_steps {rate_steps!r} must be an integer in [1, {MAX_RATE_STEPS}]')
+        model.rate_steps_ = rate_steps
         model.n_samples_, model.n_excursions_ = meta['n_samples'], meta['n_excursions']
         model.sensor2_box_ = arrays['sensor2_box']
         grid = ElasticGrid(rows, cols)

@@ -58,8 +58,8 @@ from std_msgs.msg import Float64MultiArray
 from mm_manifold.model_message import model_to_msg
 from mm_manifold.sample_assembly import Resent, Sample, SampleAssembler
 from mm_manifold.sample_log import SampleLog
-from mm_manifold.sensor_manifold import (SPACE_NONE, SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SensorManifoldModel,
-                                         StateTracker, refit_problem)
+from mm_manifold.sensor_manifold import (MAX_RATE_STEPS, SPACE_NONE, SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL,
+                                         SensorManifoldModel, StateTracker, refit_problem)
 
 # The model is latched state (TRANSIENT_LOCAL, depth 1): a controller that starts or restarts after the fit still gets
 # the newest model at once; RELIABLE because a lost model would leave the controller unable to control.
@@ -111,6 +111,10 @@ class SensorManifold(Node):
         self.grid_shape = declare(self, 'grid_shape', [10, 10], 'Elastic grid nodes [rows, cols]', read_only=True)
         self.jacobian_degree = declare(self, 'jacobian_degree', 2, 'Polynomial degree of the Jacobian fields',
                                        min_value=0, max_value=4, read_only=True)
+        self.rate_steps = declare(self, 'rate_steps', 0, 'Consecutive steps each sensor-1 rate spans when the '
+                                  'Jacobians are fitted (more steps: less of the reading noise in the rates); 0: from '
+                                  'the reading noise, 1 on clean readings', min_value=0, max_value=MAX_RATE_STEPS,
+                                  read_only=True)
         self.model_path = declare(self, 'model_path', '', 'Where the learner keeps its model across restarts ("": '
                                   'not persisted); the model reaches the controller as a message', read_only=True)
         self.samples_path = declare(self, 'samples_path', '', 'File the samples are appended to as they come and '
@@ -296,8 +300,8 @@ class SensorManifold(Node):
 
         def fit():
             try:
-                model = SensorManifoldModel(self.dt, *self.grid_shape, jacobian_degree=self.jacobian_degree).fit(
-                    R, U, C, grid=warm)
+                model = SensorManifoldModel(self.dt, *self.grid_shape, jacobian_degree=self.jacobian_degree,
+                                            rate_steps=self.rate_steps or None).fit(R, U, C, grid=warm)
                 problem = refit_problem(live, model, R[live_fitted_on:], U[live_fitted_on:], C[live_fitted_on:])
             except ValueError as exc:
                 result.append((None, str(exc), None))
