@@ -16,8 +16,8 @@ from mm_manifold.sample_assembly import Resent, Sample, SampleAssembler
 from mm_manifold.sample_log import SampleLog
 from mm_common.wheeled_sensors import SENSOR1, SENSOR2
 from mm_manifold.sensor_manifold import (SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SensorManifoldModel,
-                                         StateTracker, find_excursions, group_in_range, measurement_gain,
-                                         refit_problem)
+                                         StateTracker, excursions_without_sensor2, find_excursions,
+                                         group_in_range, measurement_gain, refit_problem)
 from mm_manifold.virtual_space import (Excursion, ExtrapolatedField, VirtualSensorSpace, integrate_batch,
                                        reentry_sensitivity)
 from mm_planner.exploration import UNDIRECTED
@@ -392,6 +392,15 @@ def test_find_excursions_break_just_before_reentry_is_not_a_reentry():
     lost = np.array([IN1, [math.nan, 0.5, 0.5, math.inf, math.inf], IN1, OUT, IN1])
     assert find_excursions(lost, np.zeros((5, 2)), np.array([True, True, False, True, False])) == []
 
+
+
+def test_excursions_without_sensor2(train_log):
+    R, U, C = train_log.readings, train_log.commands, train_log.continuous
+    assert not excursions_without_sensor2(R, U, C)                   # this exploration saw sensor 2
+    masked = R.copy()
+    masked[:, list(SENSOR2)] = math.inf
+    assert excursions_without_sensor2(masked, U, C)
+    assert not excursions_without_sensor2(np.full_like(R, math.inf), U, C)     # no excursion at all
 
 def test_find_excursions_break_in_real_exploration_data(train_log):
     R, U = train_log.readings, train_log.commands

@@ -265,6 +265,31 @@ def test_a_model_that_has_not_seen_sensor2_is_refitted_after_more_samples(model_
             rig.ros.close()
 
 
+
+def test_excursions_that_never_saw_sensor2_are_announced_without_a_fit():
+    """Excursions out of sensor-1 range in which sensor 2 never saw the wall (the demo's seed: the first 2 750
+    exploration steps): a fit's model could not map a goal, so the learner says so without fitting (a fit took a
+    second or more beside the other nodes, ten times over) and tries again after learn_after // 4 more samples."""
+    rig = Rig({'learn_after': 100})
+    try:
+        rig.subscribe_model()
+        inside = WheeledRobot().read((0.0, 0.6, -math.pi / 2), noisy=False)
+        for sec in range(1, 140):
+            rig.publish_step(sec, inside if (sec // 10) % 2 == 0 else [INF] * 5)     # in and out of range
+            rig.wait_states(sec)
+            rig.command([1.0, 1.0])
+            assert rig.ros.spin_until(lambda: len(rig.node.assembler.commands_since_sample) == 1)
+            assert rig.node.fitting is None                      # never a fitting thread
+            rig.ros.spin_for(0.01)
+            if len(rig.models) == 2:
+                break
+        first, second = rig.models[:2]
+        assert not first.ready and first.samples == 100 and not len(first.grid_nodes)
+        assert 'no excursion has seen sensor 2' in first.readiness and 'fit failed' in first.readiness
+        assert second.samples == 125 and rig.node.model is None                  # 100 // 4 more, still no model
+    finally:
+        rig.ros.close()
+
 def test_a_fit_that_fails_without_a_model_is_announced_and_retried_after_more_samples():
     """Explored without sensor 1 ever seeing the wall, the first fit fails. The controller waits for a model by then,
     so the learner announces the failure on the model topic (no grid, not ready, the reason; SensorManifoldModel.msg)

@@ -92,6 +92,14 @@ def measurement_gain(S: np.ndarray, continuous: np.ndarray) -> float:
     return 1.0 if gain > NEGLIGIBLE_NOISE_GAIN else gain
 
 
+def excursions_without_sensor2(R: np.ndarray, U: np.ndarray, continuous: np.ndarray) -> bool:
+    """The robot made excursions out of sensor-1 range (find_excursions) and sensor 2 saw the wall in none of them:
+    a fit then has no practised route and no overlap, and its model cannot map a sensor-2 goal (readiness)."""
+    in2 = group_in_range(R, SENSOR2)
+    runs = find_excursions(R, U, continuous)
+    return bool(runs) and not any(in2[exit_k + 1:last + 1].any() for exit_k, _, last in runs)
+
+
 GRID_DIMENSION = 2        # the elastic grid's dimension (grid_rows x grid_cols)
 
 

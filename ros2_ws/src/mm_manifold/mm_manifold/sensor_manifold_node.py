@@ -59,7 +59,8 @@ from mm_manifold.model_message import model_to_msg
 from mm_manifold.sample_assembly import Resent, Sample, SampleAssembler
 from mm_manifold.sample_log import SampleLog
 from mm_manifold.sensor_manifold import (MAX_RATE_STEPS, SPACE_NONE, SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL,
-                                         SensorManifoldModel, StateTracker, refit_problem)
+                                         SensorManifoldModel, StateTracker, excursions_without_sensor2,
+                                         refit_problem)
 
 # The model is latched state (TRANSIENT_LOCAL, depth 1): a controller that starts or restarts after the fit still gets
 # the newest model at once; RELIABLE because a lost model would leave the controller unable to control.
@@ -288,6 +289,16 @@ class SensorManifold(Node):
         R = np.array(self.readings)
         U = np.array(self.commands + [np.zeros(2)])
         C = np.array(self.continuous + [False])
+        if self.model is None and excursions_without_sensor2(R, U, C):
+            # A fit could only say so (a model that is not ready), after a second or more beside the other nodes:
+            # announced as a fit failure instead, which sends the controller exploring as such a model does.
+            self.fitted_samples = len(R)
+            self.fit_failed = True
+            reason = 'no excursion has seen sensor 2 yet: not fitted'
+            self.get_logger().info(f'{reason} ({len(R)} samples); trying again after '
+                                   f'{max(self.learn_after // 4, 1)} more samples')
+            self._publish_fit_failure(reason)
+            return
         # The fitting thread gets copies only (the warm-start grid too: partial_fit changes it); the live model
         # is never changed after install, so the thread may read it for the comparison.
         warm = copy.deepcopy(self.model.grid_) if self.model is not None else None
