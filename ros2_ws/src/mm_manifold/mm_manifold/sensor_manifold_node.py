@@ -22,7 +22,9 @@ fitted in a background thread (on copies: the live model is never changed, a fin
 executor), and refitted every `refit_every` further samples - and after `learn_after // 4` more when the model is not
 ready (sensor 2 not seen during the excursions, or held-out predictions above their bound: the controller explores
 on), or when the controller rejected it (`wheeled/controller/model_verdict`: a rehearsal with it failed; the
-controller explores on). A refit that is worse than the live model (fewer samples, cannot map goals the live one can,
+controller explores on). Before the first model, samples whose excursions never had sensor 2 in range are not
+fitted at all: that is announced as a fit failure, which the controller takes as such a model, and tried again after
+`learn_after // 4` more. A refit that is worse than the live model (fewer samples, cannot map goals the live one can,
 fewer practised routes, worse sensor-2 prediction of the newest samples) is logged and dropped, unless the live model
 was rejected. The model is published as an mm_msgs/SensorManifoldModel message on the latched
 `wheeled/manifold/model` topic (the controller needs no file and may run on another host); with
