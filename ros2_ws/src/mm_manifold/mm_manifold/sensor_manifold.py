@@ -207,8 +207,8 @@ class SensorManifoldModel:
         same samples over two to four steps). With rate_steps None the span is 1 / the measurement gain, rounded:
         about the steps of motion it takes to move the readings as far as their noise (measurement_gain's q and r:
         the gain is near sqrt(q / r) when the noise dominates); 1 on clean readings (gain 1), whose one-step rates
-        are exact where longer spans bend with the path (fast turns). On noisy tuning cells (results/
-        tune_wall_rate_steps.json) mean success 0.92 with one step against 0.97 over two or four. At most
+        are exact where longer spans bend with the path (fast turns). On noisy tuning cells
+        (results/tune_wall_rate_steps.json) mean success 0.92 with one step against 0.97 over two or four. At most
         MAX_RATE_STEPS."""
         h = self.rate_steps_
         k = np.arange(len(R) - h)
