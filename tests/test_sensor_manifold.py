@@ -393,7 +393,6 @@ def test_find_excursions_break_just_before_reentry_is_not_a_reentry():
     assert find_excursions(lost, np.zeros((5, 2)), np.array([True, True, False, True, False])) == []
 
 
-
 def test_excursions_without_sensor2(train_log):
     R, U, C = train_log.readings, train_log.commands, train_log.continuous
     assert not excursions_without_sensor2(R, U, C)                   # this exploration saw sensor 2
@@ -401,6 +400,7 @@ def test_excursions_without_sensor2(train_log):
     masked[:, list(SENSOR2)] = math.inf
     assert excursions_without_sensor2(masked, U, C)
     assert not excursions_without_sensor2(np.full_like(R, math.inf), U, C)     # no excursion at all
+
 
 def test_find_excursions_break_in_real_exploration_data(train_log):
     R, U = train_log.readings, train_log.commands
@@ -459,7 +459,6 @@ def test_sensor1_measurement_gain_is_learned_from_the_readings(model, noisy_mode
     clean.update(reading, None)
     np.testing.assert_allclose(clean.update(moved, np.zeros(2))[1],
                                model.grid_.transform(moved[list(SENSOR1)][None])[0], atol=1e-12)   # all of it
-
 
 
 def test_noisy_sensor1_jacobians_far_from_the_wall_come_from_rates_over_several_steps():

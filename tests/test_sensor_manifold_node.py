@@ -265,7 +265,6 @@ def test_a_model_that_has_not_seen_sensor2_is_refitted_after_more_samples(model_
             rig.ros.close()
 
 
-
 def test_excursions_that_never_saw_sensor2_are_announced_without_a_fit():
     """Excursions out of sensor-1 range in which sensor 2 never saw the wall (the demo's seed: the first 2 750
     exploration steps): a fit's model could not map a goal, so the learner says so without fitting (a fit took a
@@ -289,6 +288,7 @@ def test_excursions_that_never_saw_sensor2_are_announced_without_a_fit():
         assert second.samples == 125 and rig.node.model is None                  # 100 // 4 more, still no model
     finally:
         rig.ros.close()
+
 
 def test_a_fit_that_fails_without_a_model_is_announced_and_retried_after_more_samples():
     """Explored without sensor 1 ever seeing the wall, the first fit fails. The controller waits for a model by then,
