@@ -11,13 +11,15 @@ import pytest
 from mm_common.ros_harness import RosHarness
 from mm_msgs.msg import JacobianEstimate, ManifoldState, ModelVerdict, RangeGroup
 from mm_msgs.msg import SensorManifoldModel as ModelMsg
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Range
 from std_msgs.msg import Float64MultiArray
 
 from mm_bringup.wall_experiment import explore
-from mm_manifold.sensor_manifold import SPACE_NONE, SPACE_SENSOR1, SPACE_VIRTUAL, SensorManifoldModel
+from mm_manifold.sensor_manifold import (MAX_RATE_STEPS, SPACE_NONE, SPACE_SENSOR1, SPACE_VIRTUAL,
+                                         SensorManifoldModel)
 from mm_common.wheeled_sensors import SENSOR_NAMES, range_group
 from mm_manifold.sensor_manifold_node import SensorManifold
 from mm_sim.wheeled_model import WheeledRobot
@@ -195,6 +197,21 @@ def test_parameter_updates_are_validated(rig):
     assert node.set_parameters([Parameter('learn_after', value=500)])[0].successful
     assert node.learn_after == 500
     assert node.set_parameters([Parameter('hold_steps', value=5)])[0].successful and node.hold_steps == 5
+    assert not node.set_parameters([Parameter('rate_steps', value=2)])[0].successful      # fixed at start-up
+
+
+def test_rate_steps_is_checked_at_start_up():
+    """The span of the Jacobian rates: 0 (learned from the reading noise) or a step count up to MAX_RATE_STEPS."""
+    rig = Rig({'rate_steps': 3})
+    try:
+        assert rig.node.rate_steps == 3
+    finally:
+        rig.ros.close()
+    for bad in (-1, MAX_RATE_STEPS + 1):
+        with pytest.raises(InvalidParameterValueException):
+            Rig({'rate_steps': bad})
+    with pytest.raises(InvalidParameterTypeException):
+        Rig({'rate_steps': 'four'})
 
 
 def test_loads_saved_model_announces_it_and_tracks_the_state(model_file):
