@@ -7,8 +7,8 @@
    where both sensor groups see the wall, as in the paper; `--layout overlap` for the simulator's default), composed
    in one process (mm_bringup wheeled_container: the same nodes and topics, the same learning to the byte, about
    1.7x the loop's rate, and the other core left to the arm; `--separate-processes` for one process each). The
-   robot explores (1 000 steps and 2 rehearsals, the sample-bound setting the wall_task benchmark's headline
-   measures on five seeds: wall_experiment.SAMPLE_BOUND_EXPLORATION / _REHEARSALS), the manifold node learns
+   robot explores (the sample-bound setting the wall_task benchmark's headline measures on five seeds:
+   wall_experiment.SAMPLE_BOUND_EXPLORATION steps and SAMPLE_BOUND_REHEARSALS rehearsals), the manifold node learns
    the grid, Jacobians and virtual sensor space, then the paper's task runs: start facing the wall perpendicularly
    at 1 m, goal shown as the sensor-2 reading of the pose parallel to the wall at the layout's goal distance
    (wall_experiment.PAPER_GOAL_POSES), reached across the blind stretch.
