@@ -600,22 +600,22 @@ def out_and_back(c, field, exit_point, max_steps=200):
 def test_past_a_missed_replay_the_way_out_and_back_stays_within_twice_the_practised_blind_length():
     """The route crossed in practice with 5 blind steps (6 commands). The replay misses sensor 2: the robot drives on
     with the virtual-space plan only while a retrace (at max_wheel_speed) could still bring it back within twice
-    that, then goes back - the whole stretch, out and back, at most 10 steps. Without the budget (blind_budget 0, the
-    default) the stretch runs to the watchdog's limit (1.5 x 5 + 20 steps) and as far back."""
+    that, then goes back - the whole stretch, out and back, at most 10 steps (blind_budget 2, the default). Without the
+    budget (blind_budget 0) the stretch runs to the watchdog's limit (1.5 x 5 + 20 steps) and as far back."""
     field, _ = linear_field()
     exit_point, replay = np.array([4.0, 4.0]), np.array([[1.0, 1.0]] * 6)
-    c = SwitchingController(DT, max_wheel_speed=6.0, max_retries=1, blind_budget=2)
+    c = SwitchingController(DT, max_wheel_speed=6.0, max_retries=1)
     c.set_goal(np.array([0.17, 0.17]), np.array([9.0, 9.0]), exit_point, replay=replay)
     out = out_and_back(c, field, exit_point)
     steps, predicted = c.longest_blind
     assert predicted == 5 and steps <= 2 * predicted and c.watchdog_trips == 1
     assert len(out) > len(replay) - 1             # past the replay (its first command was the exit's) it looked on
-    unbudgeted = SwitchingController(DT, max_wheel_speed=6.0, max_retries=1)          # the default: no budget
+    unbudgeted = SwitchingController(DT, max_wheel_speed=6.0, max_retries=1, blind_budget=0)
     unbudgeted.set_goal(np.array([0.17, 0.17]), np.array([9.0, 9.0]), exit_point, replay=replay)
     out_and_back(unbudgeted, field, exit_point)
     assert unbudgeted.longest_blind[0] > unbudgeted.blind_limit > 2 * predicted
     # On the last route there is nothing left to retry: the watchdog's own limit decides, as without the budget.
-    last = SwitchingController(DT, max_wheel_speed=6.0, max_retries=0, blind_budget=2)
+    last = SwitchingController(DT, max_wheel_speed=6.0, max_retries=0)
     last.set_goal(np.array([0.17, 0.17]), np.array([9.0, 9.0]), exit_point, replay=replay)
     out_and_back(last, field, exit_point)
     assert last.longest_blind[0] > last.blind_limit
@@ -636,6 +636,38 @@ def test_still_in_range_after_the_exits_command_the_replay_repeats_it_until_the_
     assert np.array_equal(driven, [replay[0]] * 3 + [replay[1]])
     u, _, _ = c.command(SPACE_VIRTUAL, exit_point, None, field, None, blind=True)
     assert np.array_equal(u, replay[2]) and c.predicted_blind == len(replay) - 1
+
+
+def test_the_wall_lost_on_the_way_to_the_exit_starts_the_replay_there():
+    """A route's exit is the excursion's last in-range state, at the edge of sensor 1's range, where noisy readings
+    fall out of range before the approach gets within exit_tolerance. The wall lost within waypoint_tolerance of the
+    exit starts the replay on that first blind step; the stretch is the replay's, one step early (its steps as driven,
+    the blind step it started on included), and past it the blind budget applies. Lost farther away, or after a
+    blind step already driven, the virtual-space plan goes on as before; replay_on_loss=False keeps it so."""
+    field, _ = linear_field()
+    exit_point, goal = np.array([4.0, 4.0]), np.array([9.0, 9.0])
+    replay = np.array([[-2.0, 2.0], [5.0, 5.0], [5.0, 5.0], [1.0, -1.0]])
+
+    def approach_then_lose(c, lost_at):
+        c.set_goal(np.array([0.17, 0.17]), goal, exit_point, replay=replay)
+        c.command(SPACE_SENSOR1, exit_point + 0.2, None, field, None, np.eye(2))     # within 0.3, not 0.05
+        return c.command(SPACE_VIRTUAL, lost_at, None, field, None, blind=True)[0]
+
+    c = SwitchingController(DT, max_wheel_speed=6.0, waypoint_tolerance=0.3, exit_tolerance=0.05)
+    assert np.array_equal(approach_then_lose(c, exit_point + 0.15), replay[0])
+    assert c.predicted_blind == len(replay) and c._practised_stretch and c.longest_blind == (1, len(replay))
+    assert [c.command(SPACE_VIRTUAL, exit_point, None, field, None, blind=True)[0].tolist()
+            for _ in range(3)] == replay[1:].tolist()
+    for far in (SwitchingController(DT, max_wheel_speed=6.0),                  # lost 0.42 from the exit
+                SwitchingController(DT, max_wheel_speed=6.0, replay_on_loss=False)):
+        lost_at = exit_point + (0.3 if far.replay_on_loss else 0.15)
+        u = approach_then_lose(far, lost_at)
+        assert not far._replay and not far._practised_stretch and not np.array_equal(u, replay[0])
+        assert np.array_equal(u, far._best_constant_command(field, lost_at, exit_point, 1.0, None))
+    late = SwitchingController(DT, max_wheel_speed=6.0)
+    approach_then_lose(late, exit_point + 0.3)
+    late.command(SPACE_VIRTUAL, exit_point + 0.15, None, field, None, blind=True)     # second blind step: no replay
+    assert not late._practised_stretch
 
 
 def test_stuck_far_from_the_exit_the_virtual_space_plan_goes_on_instead_of_the_replay():

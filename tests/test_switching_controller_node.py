@@ -390,7 +390,7 @@ def test_the_paper_s_undirected_exploration_and_blind_crossing_are_parameter_cho
     rig = Rig({'exploration_steps': 0})
     try:
         assert rig.node.agent._new_controller(0.01).replay_routes is True
-        assert rig.node.agent._new_controller(0.01).blind_budget == 0.0
+        assert rig.node.agent._new_controller(0.01).blind_budget == 2.0
     finally:
         rig.ros.close()
     for bad in ({'exploration_excursion_share': 1.5}, {'exploration_repeat_probability': 1.5},
@@ -400,9 +400,9 @@ def test_the_paper_s_undirected_exploration_and_blind_crossing_are_parameter_cho
 
 
 def test_the_blind_budget_is_a_start_up_parameter_that_reaches_every_controller():
-    rig = Rig({'exploration_steps': 0, 'blind_budget': 2.0})
+    rig = Rig({'exploration_steps': 0, 'blind_budget': 0.0})
     try:
-        assert rig.node.agent._new_controller(0.01).blind_budget == 2.0
+        assert rig.node.agent._new_controller(0.01).blind_budget == 0.0
         assert not rig.node.set_parameters([Parameter('blind_budget', value=3.0)])[0].successful
     finally:
         rig.ros.close()

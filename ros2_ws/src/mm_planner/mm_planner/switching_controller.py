@@ -6,7 +6,8 @@ and once sensor 2 is in range control switches to the sensor-2 readings themselv
 
 Beyond the paper, the blind stretch is crossed as it was crossed in practice: the route is one practised excursion
 (where it left sensor-1 range and the commands it drove from there until sensor 2 first saw the wall). The robot drives
-to that exit with sensor-1 control, to within `exit_tolerance` grid units, and replays those commands; the virtual space
+to that exit with sensor-1 control, to within `exit_tolerance` grid units (or until it loses the wall near the exit,
+at the range's edge, as the excursion did), and replays those commands; the virtual space
 tracks the state meanwhile and takes over if the replay ends with sensor 2 still out of sight, or if the approach got
 stuck farther than `waypoint_tolerance` from the exit (from there the commands would lead elsewhere). A pose relative to
 an infinite wall is fixed by its sensor-1 coordinates, and the same commands from the same pose drive the same path, so
@@ -27,9 +28,9 @@ goal coordinates. A stretch that runs past `blind_factor` times that plus `blind
 is wrong there: the robot replays the commands it drove blind backwards (it knows its own commands; a differential
 drive retraces its path exactly under reversed commands), back to where it last saw the wall (further back along the
 path before the stretch if it is still blind there: a lost reading may have hidden one out of range), and then takes
-the next practised route, or fails with the reason once `max_retries` routes were tried. With `blind_budget` set, a
-replay that ran out with no sensor in sight is held to a tighter budget while other routes remain: that many times the
-practised blind length for the whole stretch, out and back (see _turn_back_now). Durations are in steps and distances in readings or grid
+the next practised route, or fails with the reason once `max_retries` routes were tried. A replay that ran out with no
+sensor in sight is held to a tighter budget while other routes remain: `blind_budget` times the practised blind length
+for the whole stretch, out and back (see _turn_back_now). Durations are in steps and distances in readings or grid
 units: nothing here knows the robot's size.
 """
 from __future__ import annotations
@@ -89,12 +90,17 @@ class SwitchingController:
     by replaying the route's practised commands from its exit, module docstring; False: the paper's virtual-space
     plan alone), exit_tolerance [grid units] (how close to the route's exit the replay starts), exit_holds (times the
     exit's command is driven again while sensor 1 still sees the wall after it: the approach from inside the range
-    stops short of the practised exit) and blind_budget (a stretch past a replay that ran out, out and back, in
-    multiples of the route's practised blind length; issue 11's target is 2. 0, the default: only the watchdog's
-    limit. At 2 the wall benchmark's clean `paper` cells had half as many episodes blind over 2x at the same success,
-    but its noisy cells 4 points less success: README, "Never wander blind"), hold_steps (sees_nothing: a lost reading
-    stands for the sensor's last one for this many steps when judging whether a group sees the wall, the learner's
-    StateTracker default)."""
+    stops short of the practised exit), replay_on_loss (the wall lost within waypoint_tolerance of the route's exit,
+    on the way there, starts the replay on that first blind step: the exit is the excursion's last in-range state,
+    at the range's edge, and noisy readings fall out of range before the approach gets within exit_tolerance; the
+    virtual-space plan from there dithered blind until the watchdog's limit), blind_budget (a stretch past a replay
+    that ran out, out and back, in multiples of the route's practised blind length; issue 11's target is 2; 0: only
+    the watchdog's limit). Both chosen together by `mm_bringup.tune_wall --controller` on tuning seeds 100-109
+    (results/tune_wall_replay_on_loss.json; README, "Never wander blind"): over 40 noisy `paper` cells the share
+    of episodes blind over 2x 0.381 -> 0.152 at mean success 0.986 -> 0.991, over 40 clean ones 0.093 -> 0.03 at
+    1.0; without noise replay_on_loss changes nothing), hold_steps (sees_nothing: a lost reading stands for the
+    sensor's last one for this many steps when judging whether a group sees the wall, the learner's StateTracker
+    default)."""
 
     def __init__(self, dt: float, max_wheel_speed: float = 6.0, horizon: int = 12,
                  speed_levels=(1.0, 0.4, 0.12, 0.0), travel_weight: float = 1e-3, tolerance: float = 0.01,
@@ -103,7 +109,7 @@ class SwitchingController:
                  max_settle_steps: int = 30, manoeuvre_travel_weight: float = 1e-2, blind_factor: float = 1.5,
                  blind_margin_steps: int = 20, blind_prediction_cap: int = 100, retrace_history_steps: int = 5,
                  replay_routes: bool = True, exit_tolerance: float = 0.05, exit_holds: int = 5,
-                 blind_budget: float = 0.0, hold_steps: int = 3):
+                 blind_budget: float = 2.0, hold_steps: int = 3, replay_on_loss: bool = True):
         if dt <= 0 or max_wheel_speed <= 0 or tolerance <= 0 or horizon < 1:
             raise ValueError('dt, max_wheel_speed, tolerance and horizon must be positive')
         if travel_weight < 0 or manoeuvre_travel_weight < 0:
@@ -140,6 +146,7 @@ class SwitchingController:
         self.exit_holds = exit_holds
         self.blind_budget = blind_budget
         self.hold_steps = hold_steps
+        self.replay_on_loss = bool(replay_on_loss)
         self._held: list = []               # each sensor's last reading and how many steps it has been lost since
         self._plan: Optional[np.ndarray] = None
         levels = sorted({s * max_wheel_speed * sign for s in speed_levels for sign in (-1, 1)})
@@ -519,6 +526,14 @@ class SwitchingController:
             else:
                 self._replay.append([u.copy(), self.dt])
         self._replay_total = self._replay_steps()
+        if self.replay_on_loss and self.blind_steps == 1 and not self.returning:
+            # The wall was lost on the way to the exit (replay_on_loss): the stretch is this replay, begun one step
+            # early - its steps as driven, the blind one it starts on included.
+            self._practised_stretch = True
+            self.predicted_blind = min(self.blind_prediction_cap, self._replay_total)
+            self.blind_limit = int(math.ceil(self.blind_factor * self.predicted_blind)) + self.blind_margin_steps
+            if self.longest_blind[0] == self.blind_steps:
+                self.longest_blind = (self.blind_steps, self.predicted_blind)
 
     def _replay_steps(self) -> int:
         """Steps the replay under way still takes (runs faster than max_wheel_speed take longer)."""
@@ -605,8 +620,11 @@ class SwitchingController:
             self.best_error, self.stalled_steps = error, 0
         else:
             self.stalled_steps += 1
+        # The wall lost near the exit, on the way there: the practised excursion left the range about here too.
+        lost_at_exit = (self.replay_on_loss and replaying and space != SPACE_SENSOR1 and self.blind_steps == 1
+                        and error < self.waypoint_tolerance)
         if self.waypoint is not None and (
-                error < (self.exit_tolerance if replaying else self.waypoint_tolerance)
+                error < (self.exit_tolerance if replaying else self.waypoint_tolerance) or lost_at_exit
                 or self.stalled_steps > 3 * self.stall_steps):
             # At the practised exit (or unable to get closer, e.g. noisy readings at the range edge): go for the goal,
             # as practised from near the exit; from farther (stuck on the way) the practised commands would lead
