@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import struct
 import sys
 import tempfile
 import threading
@@ -42,13 +43,16 @@ from mm_bringup.wall_experiment import (LAYOUTS, PAPER_GOAL_POSES, PAPER_START, 
                                         SAMPLE_BOUND_REHEARSALS, layout_file, layout_robot,
                                         oracle_path_length, sensor2_goal_reading, simulator_params_file)
 from mm_bringup.wall_graph import WallGraph
+from mm_common.rosbag import iter_messages
 from mm_common.wheeled_sensors import SENSOR2
 from mm_manifold.sensor_manifold import SensorManifoldModel
 
 PAPER_TOLERANCE = 0.005
-# wheeled_sim publishes each of these exactly once per step (a re-sent step included)
-PER_STEP_TOPICS = ['/wheeled/ranges', '/wheeled/bumper', '/wheeled/ground_truth/odom'] + [
+# wheeled_sim publishes each of these exactly once per step (a re-sent step included); all but the bumper's Bool
+# begin with a std_msgs/Header, whose stamp names the step
+STAMPED_PER_STEP_TOPICS = ['/wheeled/ranges', '/wheeled/ground_truth/odom'] + [
     f'/wheeled/range/{n}' for n in ('front_left', 'front_center', 'front_right', 'side_front', 'side_rear')]
+PER_STEP_TOPICS = STAMPED_PER_STEP_TOPICS + ['/wheeled/bumper']
 # The recorder must hold these from the loop's first step (see WallGraph).
 LOOP_TOPICS = ['/clock', '/wheeled/wheel_velocity_controller/commands', '/wheeled/controller/status'] + PER_STEP_TOPICS
 
@@ -93,11 +97,29 @@ def explore_with_progress(wall: WallGraph, steps: int, every_s: float = 2.0) -> 
     wall.spin_until(explored, 1800.0, 'the exploration')
 
 
+def header_stamp_ns(cdr: bytes) -> int:
+    """The header stamp of a serialized message that begins with a std_msgs/Header (CDR: a 4-byte encapsulation,
+    then sec int32 and nanosec uint32 in its byte order), without deserializing the rest."""
+    order = '<' if cdr[1] & 1 else '>'
+    sec, nanosec = struct.unpack_from(order + 'iI', cdr, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
 def bag_completeness(bag: Path) -> dict:
-    """The simulator publishes its per-step topics once per step, all to the recorder: equal counts or a loss."""
+    """Whether the bag holds every step of the wheeled loop on every per-step topic. The simulator publishes them
+    all once per step, and again (same stamp) when no command came for its republish period - also at start-up,
+    when the recorder may have matched some topics and not yet the others: such a step is on some topics twice,
+    which is no loss, so the steps are counted by stamp. The bumper's Bool has no stamp: it must hold at least as
+    many messages as there are steps."""
     counts = topic_counts(bag)
-    per_step = {t: counts.get(t, 0) for t in PER_STEP_TOPICS}
-    return {'per_step_topic_counts': per_step, 'complete': len(set(per_step.values())) == 1}
+    stamps = {t: set() for t in STAMPED_PER_STEP_TOPICS}
+    for message in iter_messages(bag, STAMPED_PER_STEP_TOPICS):
+        stamps[message.topic].add(header_stamp_ns(message.data))
+    steps = set().union(*stamps.values())
+    complete = all(s == steps for s in stamps.values()) and counts.get('/wheeled/bumper', 0) >= len(steps)
+    return {'per_step_topic_counts': {t: counts.get(t, 0) for t in PER_STEP_TOPICS},
+            'per_step_topic_steps': {t: len(s) for t, s in stamps.items()}, 'steps': len(steps),
+            'complete': complete}
 
 
 def learn_with_progress(wall: WallGraph, every_s: float = 5.0) -> None:
@@ -259,7 +281,8 @@ def main(argv=None) -> int:
     results['bag'] = bag_completeness(bag)
     if not results['bag']['complete']:
         log(f"WARNING: the bag lost messages of the wheeled loop: the simulator publishes each of these once per "
-            f"step, yet the bag holds {results['bag']['per_step_topic_counts']}")
+            f"step ({results['bag']['steps']} steps), yet the bag holds steps {results['bag']['per_step_topic_steps']} "
+            f"and messages {results['bag']['per_step_topic_counts']}")
     log(f'bag closed and summarised in {phases.done("bag")} s')
     problem = drawing.result()
     log(f'figures failed: {problem}' if problem else
