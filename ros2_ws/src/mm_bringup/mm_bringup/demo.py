@@ -109,12 +109,14 @@ def bag_completeness(bag: Path) -> dict:
     """Whether the bag holds every step of the wheeled loop on every per-step topic. The simulator publishes them
     all once per step, and again (same stamp) when no command came for its republish period - also at start-up,
     when the recorder may have matched some topics and not yet the others: such a step is on some topics twice,
-    which is no loss, so the steps are counted by stamp. The bumper's Bool has no stamp: it must hold at least as
-    many messages as there are steps."""
+    which is no loss, so the steps are counted by stamp (the steps are those on any of the topics: one missing from
+    all of them at once would go unnoticed). The bumper's Bool has no stamp: it must hold at least as many messages
+    as there are steps."""
     counts = topic_counts(bag)
     stamps = {t: set() for t in STAMPED_PER_STEP_TOPICS}
     for message in iter_messages(bag, STAMPED_PER_STEP_TOPICS):
-        stamps[message.topic].add(header_stamp_ns(message.data))
+        if len(message.data) >= 12:          # shorter holds no stamp: no step (the check then fails)
+            stamps[message.topic].add(header_stamp_ns(message.data))
     steps = set().union(*stamps.values())
     complete = all(s == steps for s in stamps.values()) and counts.get('/wheeled/bumper', 0) >= len(steps)
     return {'per_step_topic_counts': {t: counts.get(t, 0) for t in PER_STEP_TOPICS},

@@ -22,13 +22,14 @@ def message(topic, step):
     return serialize_message(msg)
 
 
-def write_bag(path, published):
-    """`published`: (topic, step) in the order the simulator sent them."""
+def write_bag(path, published, truncated=None):
+    """`published`: (topic, step) in the order the simulator sent them; the `truncated` one cut to 6 bytes."""
     writer = BagWriter(path)
     for topic in PER_STEP_TOPICS:
         writer.add_topic(topic, TYPES.get(topic, ('sensor_msgs/msg/Range',))[0], [QosSummary()])
     for n, (topic, step) in enumerate(published):
-        writer.write(topic, message(topic, step), 1_000_000_000 + n)
+        data = message(topic, step)
+        writer.write(topic, data[:6] if (topic, step) == truncated else data, 1_000_000_000 + n)
     writer.close()
     return path
 
@@ -59,6 +60,8 @@ def test_a_step_missing_from_one_topic_is_a_loss(tmp_path):
     published = [(t, 2 if (t, s) == ('/wheeled/ranges', 3) else s) for t, s in steps(5)]
     result = bag_completeness(write_bag(tmp_path / 'b', published))
     assert len(set(result['per_step_topic_counts'].values())) == 1 and not result['complete']
+    # a truncated message holds no step
+    assert not bag_completeness(write_bag(tmp_path / 'd', steps(3), truncated=('/wheeled/ranges', 1)))['complete']
     # the bumper has no stamp: fewer of its messages than steps is a loss
     published = [(t, s) for t, s in steps(5) if (t, s) != ('/wheeled/bumper', 4)]
     assert not bag_completeness(write_bag(tmp_path / 'c', published))['complete']
