@@ -296,9 +296,9 @@ def test_excursions_that_never_saw_sensor2_are_announced_without_a_fit():
             rig.command([1.0, 1.0])
             assert rig.ros.spin_until(lambda: len(rig.node.assembler.commands_since_sample) == 1)
             assert rig.node.fitting is None                      # never a fitting thread
-            rig.ros.spin_for(0.01)
             if len(rig.models) == 2:
                 break
+        assert rig.ros.spin_until(lambda: len(rig.models) >= 2)
         first, second = rig.models[:2]
         assert not first.ready and first.samples == 100 and not len(first.grid_nodes)
         assert 'no excursion has seen sensor 2' in first.readiness and 'fit failed' in first.readiness
