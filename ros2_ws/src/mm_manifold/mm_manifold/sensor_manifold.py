@@ -65,6 +65,11 @@ NEGLIGIBLE_NOISE_GAIN = 0.99      # a gain this close to 1: the readings are use
 MAX_RATE_STEPS = 10               # longest span of a sensor-1 rate (a gain near 0: readings that hardly move)
 
 
+def _valid_rate_steps(value) -> bool:
+    """A span of sensor-1 rates: an integer (not a bool) in [1, MAX_RATE_STEPS]."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and 1 <= value <= MAX_RATE_STEPS
+
+
 def measurement_gain(S: np.ndarray, continuous: np.ndarray) -> float:
     """Steady-state Kalman gain of a reading that moves by random steps of variance q and is observed with noise of
     variance r, both estimated from the readings alone (robustly, by the median absolute deviation): consecutive
@@ -122,8 +127,7 @@ class SensorManifoldModel:
                  random_state: Optional[int] = 0):
         if validation_folds < 2 or not heldout_bound > 0:
             raise ValueError('validation_folds >= 2 and heldout_bound > 0 are required')
-        if rate_steps is not None and (isinstance(rate_steps, bool) or not isinstance(rate_steps, (int, np.integer))
-                                       or not 1 <= rate_steps <= MAX_RATE_STEPS):
+        if rate_steps is not None and not _valid_rate_steps(rate_steps):
             raise ValueError(f'rate_steps must be an integer in [1, {MAX_RATE_STEPS}] or None (from the reading '
                              f'noise), got {rate_steps!r}')
         self.rate_steps = rate_steps
@@ -406,7 +410,7 @@ class SensorManifoldModel:
             raise ValueError(f"sensor1_gain {meta['sensor1_gain']!r} must be in (0, 1]")
         model.sensor1_gain_ = float(meta['sensor1_gain'])
         rate_steps = meta.get('rate_steps', 1)          # files saved before the span was learned used one step
-        if not isinstance(rate_steps, int) or isinstance(rate_steps, bool) or not 1 <= rate_steps <= MAX_RATE_STEPS:
+        if not _valid_rate_steps(rate_steps):
             raise ValueError(f'rate_steps {rate_steps!r} must be an integer in [1, {MAX_RATE_STEPS}]')
         model.rate_steps_ = rate_steps
         model.n_samples_, model.n_excursions_ = meta['n_samples'], meta['n_excursions']
