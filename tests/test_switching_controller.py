@@ -621,6 +621,36 @@ def test_past_a_missed_replay_the_way_out_and_back_stays_within_twice_the_practi
     assert last.longest_blind[0] > last.blind_limit
 
 
+def test_the_budget_holds_every_crossing_not_only_one_past_a_missed_replay():
+    """A crossing with no replay under way (a route without practised commands here; also the wall lost on the
+    approach far from the exit) is predicted by the plan's rollout in the virtual field. When sensor 2 does not
+    appear, the robot turns back within twice that, out and back (budget_every_crossing, the default). With
+    budget_every_crossing=False the budget holds only past a replay and this stretch runs to the watchdog's limit."""
+    rng = np.random.default_rng(0)
+    Y, U = rng.uniform(3.0, 5.0, (200, 2)), rng.uniform(-6.0, 6.0, (200, 2))
+    field = PolynomialJacobianField(1).fit(Y, U, U @ np.array([[1.0, 1.2], [1.2, 1.0]]).T)
+    exit_point = np.array([4.0, 4.0])
+    goal = exit_point + 0.6            # a few steps of the plan beyond waypoint_tolerance (0.3)
+    c = SwitchingController(DT, max_wheel_speed=6.0, max_retries=3)
+    c.set_goal(np.array([0.17, 0.17]), goal, exit_point)
+    out_and_back(c, field, exit_point)
+    steps, predicted = c.longest_blind
+    assert not c._practised_stretch and 1 < predicted < 20
+    assert steps <= 2 * predicted and c.watchdog_trips == 1
+    # Begun where sensor 2 last saw the wall (a sensor-2 manoeuvre left its range) it is no crossing: the watchdog.
+    in_sensor2 = SwitchingController(DT, max_wheel_speed=6.0, max_retries=3)
+    in_sensor2.set_goal(np.array([0.17, 0.17]), goal, exit_point)
+    in_sensor2.command(SPACE_SENSOR2, None, np.array([0.1, 0.1]), field, field)
+    for _ in range(2 * predicted + 2):
+        in_sensor2.command(SPACE_VIRTUAL, exit_point, None, field, None, blind=True)
+    assert in_sensor2.predicted_blind == predicted and not in_sensor2.returning
+    replay_only = SwitchingController(DT, max_wheel_speed=6.0, max_retries=3, budget_every_crossing=False)
+    replay_only.set_goal(np.array([0.17, 0.17]), goal, exit_point)
+    out_and_back(replay_only, field, exit_point)
+    assert replay_only.longest_blind[1] == predicted
+    assert replay_only.longest_blind[0] > replay_only.blind_limit > 2 * predicted
+
+
 def test_still_in_range_after_the_exits_command_the_replay_repeats_it_until_the_wall_is_lost():
     """The approach reaches the exit from inside the range, a little short of where the practised excursion left it
     (its last in-range state): while sensor 1 still sees the wall after the replay's first command, that command is

@@ -28,9 +28,11 @@ goal coordinates. A stretch that runs past `blind_factor` times that plus `blind
 is wrong there: the robot replays the commands it drove blind backwards (it knows its own commands; a differential
 drive retraces its path exactly under reversed commands), back to where it last saw the wall (further back along the
 path before the stretch if it is still blind there: a lost reading may have hidden one out of range), and then takes
-the next practised route, or fails with the reason once `max_retries` routes were tried. A replay that ran out with no
-sensor in sight is held to a tighter budget while other routes remain: `blind_budget` times the practised blind length
-for the whole stretch, out and back (see _turn_back_now). Durations are in steps and distances in readings or grid
+the next practised route, or fails with the reason once `max_retries` routes were tried. A crossing (a stretch begun
+with sensor 1 last in sight) is held to a tighter budget while other routes remain: `blind_budget` times its
+predicted length for the whole stretch, out and back, counted from where a replay ran out or from the wall's loss
+when none is under way (see _turn_back_now). A stretch begun in sensor 2's range (a sensor-2 manoeuvre left it) is
+not: turned back, the robot left it again and again. Durations are in steps and distances in readings or grid
 units: nothing here knows the robot's size.
 """
 from __future__ import annotations
@@ -93,14 +95,18 @@ class SwitchingController:
     stops short of the practised exit), replay_on_loss (the wall lost within waypoint_tolerance of the route's exit,
     on the way there, starts the replay on that first blind step: the exit is the excursion's last in-range state,
     at the range's edge, and noisy readings fall out of range before the approach gets within exit_tolerance; the
-    virtual-space plan from there dithered blind until the watchdog's limit), blind_budget (a stretch past a replay
-    that ran out, out and back, in multiples of the route's practised blind length; issue 11's target is 2; 0: only
-    the watchdog's limit). Both chosen together by `mm_bringup.tune_wall --controller` on tuning seeds 100-109
-    (results/tune_wall_replay_on_loss.json; README, "Never wander blind"): over 40 noisy `paper` cells the share
-    of episodes blind over 2x 0.381 -> 0.152 at mean success 0.986 -> 0.991, over 40 clean ones 0.093 -> 0.03 at
-    1.0; without noise replay_on_loss changes nothing), hold_steps (sees_nothing: a lost reading stands for the
-    sensor's last one for this many steps when judging whether a group sees the wall, the learner's StateTracker
-    default)."""
+    virtual-space plan from there dithered blind until the watchdog's limit), blind_budget (a crossing, out and
+    back, in multiples of its predicted length; issue 11's target is 2; 0: only the watchdog's limit). Both chosen
+    together by `mm_bringup.tune_wall --controller` on tuning seeds 100-109 (results/tune_wall_replay_on_loss.json;
+    README, "Never wander blind"): over 40 noisy `paper` cells the share of episodes blind over 2x 0.381 -> 0.152
+    at mean success 0.986 -> 0.991, over 40 clean ones 0.093 -> 0.03 at 1.0; without noise replay_on_loss changes
+    nothing; there the budget held only stretches past a replay that ran out), budget_every_crossing (the budget holds
+    every crossing, not only one past a replay: one with no replay under way, the wall lost on the approach or a route
+    without practised commands, is held to blind_budget times the plan's predicted length; on by `mm_bringup.tune_wall
+    --controller` on tuning seeds 100-109, 40 noisy `paper` cells: share over 2x 0.143 -> 0.079 at mean success 0.991 ->
+    0.989, clean cells unchanged, results/tune_wall_budget_every_crossing.json; a stretch begun in sensor 2's range is
+    not held: that cost 1.5 points of noisy success), hold_steps (sees_nothing: a lost reading stands for the sensor's
+    last one for this many steps when judging whether a group sees the wall, the learner's StateTracker default)."""
 
     def __init__(self, dt: float, max_wheel_speed: float = 6.0, horizon: int = 12,
                  speed_levels=(1.0, 0.4, 0.12, 0.0), travel_weight: float = 1e-3, tolerance: float = 0.01,
@@ -109,7 +115,8 @@ class SwitchingController:
                  max_settle_steps: int = 30, manoeuvre_travel_weight: float = 1e-2, blind_factor: float = 1.5,
                  blind_margin_steps: int = 20, blind_prediction_cap: int = 100, retrace_history_steps: int = 5,
                  replay_routes: bool = True, exit_tolerance: float = 0.05, exit_holds: int = 5,
-                 blind_budget: float = 2.0, hold_steps: int = 3, replay_on_loss: bool = True):
+                 blind_budget: float = 2.0, hold_steps: int = 3, replay_on_loss: bool = True,
+                 budget_every_crossing: bool = True):
         if dt <= 0 or max_wheel_speed <= 0 or tolerance <= 0 or horizon < 1:
             raise ValueError('dt, max_wheel_speed, tolerance and horizon must be positive')
         if travel_weight < 0 or manoeuvre_travel_weight < 0:
@@ -147,6 +154,7 @@ class SwitchingController:
         self.blind_budget = blind_budget
         self.hold_steps = hold_steps
         self.replay_on_loss = bool(replay_on_loss)
+        self.budget_every_crossing = bool(budget_every_crossing)
         self._held: list = []               # each sensor's last reading and how many steps it has been lost since
         self._plan: Optional[np.ndarray] = None
         levels = sorted({s * max_wheel_speed * sign for s in speed_levels for sign in (-1, 1)})
@@ -219,6 +227,8 @@ class SwitchingController:
         # longest stretch of the episode as (steps, predicted steps), and why the task cannot go on (None: it can).
         self.blind_steps, self.predicted_blind, self.blind_limit = 0, 0, 0
         self._practised_stretch = False     # the stretch began in a replay (blind_budget applies past it)
+        self._sensor2_last = False          # the last group that saw the wall was sensor 2
+        self._from_sensor2 = False          # the stretch began there (lost in the sensor-2 phase, not a crossing)
         self._blind_runs: list = []         # [command, seconds] runs driven in this stretch (the way back)
         self._last_chance_taken = False     # the one step driven on after the way back stopped fitting (see there)
         self._path: list = []
@@ -379,6 +389,7 @@ class SwitchingController:
         if self.failure is not None:
             return np.zeros(2), False, float('nan')
         if not blind:
+            self._sensor2_last = space == SPACE_SENSOR2
             self._end_blind_stretch(space)
             if self.failure is not None:
                 return np.zeros(2), False, float('nan')
@@ -395,7 +406,8 @@ class SwitchingController:
         replaying = bool(self._replay)
         u, reached, error = self._command(space, coordinates, sensor2, virtual_field, sensor2_field, sensor1_jacobian,
                                           bounds, sensor2_box, sensor2_measured)
-        if (blind and self.blind_budget and self._practised_stretch and not replaying
+        if (blind and self.blind_budget and not replaying and (
+                self._practised_stretch or (self.budget_every_crossing and not self._from_sensor2))
                 and self.retries < self.max_retries and self._turn_back_now(u)):
             self._turn_back()
             return self._retrace()
@@ -411,6 +423,7 @@ class SwitchingController:
         self._blind_runs = []
         self._last_chance_taken = False
         self._practised_stretch = bool(self._replay)
+        self._from_sensor2 = self._sensor2_last
         if self._practised_stretch:
             # The states between the exit and sensor 2's first reading in practice: the replay's steps (as driven
             # here, commands faster than max_wheel_speed slowed) but the last.
@@ -442,12 +455,12 @@ class SwitchingController:
         self.watchdog_trips += 1
 
     def _turn_back_now(self, u: np.ndarray) -> bool:
-        """Past a practised crossing (the replay ran out) with no sensor in sight: whether to go back instead of
-        driving `u`. The budget is blind_budget times the route's practised blind length, counting the retrace at
-        max_wheel_speed: drive on while a miss after `u` could still come back within it; else go back if that
-        still fits now; else (the way back no longer fits: a route practised with one blind step that missed by
-        one) drive one step more, which ends the stretch within the budget if sensor 2 sees the wall after it,
-        then go back."""
+        """A crossing with no replay under way (it ran out, or none began) and no sensor in sight: whether to go back
+        instead of driving `u`. The budget is blind_budget times the stretch's predicted length (the route's practised
+        blind length past a replay), counting the retrace at max_wheel_speed: drive on while a miss after `u` could
+        still come back within it; else go back if that still fits now; else (the way back no longer fits: a route
+        practised with one blind step that missed by one) drive one step more, which ends the stretch within the budget
+        if sensor 2 sees the wall after it, then go back."""
         budget = self.blind_budget * self.predicted_blind
         runs = [[v.copy(), seconds] for v, seconds in self._blind_runs]
         back_now = self._retrace_steps(runs)

@@ -112,9 +112,10 @@ class SwitchingControllerNode(Node):
                          'exit (false: the paper\'s virtual-space plan alone); fixed at start-up', read_only=True)
         blind_budget = declare(self, 'blind_budget',
                                float(inspect.signature(SwitchingController).parameters['blind_budget'].default),
-                               'Past a replay that ran out blind, turn back once the way out and back would exceed '
-                               'this many times the route\'s practised blind length (0: off, only the watchdog\'s '
-                               'limit; else >= 1; README issue 11); fixed at start-up',
+                               'Turn back from a blind crossing (sensor 1 last in sight) once the way out and back '
+                               'would exceed this many times its predicted length (past a replay the route\'s '
+                               'practised blind length) (0: off, only the watchdog\'s limit; else >= 1; README '
+                               'issue 11); fixed at start-up',
                                min_value=0.0, max_value=100.0, read_only=True)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.agent = WallAgent(self.dt, exploration_steps, max_wheel_speed, tolerance, max_reach_steps,
