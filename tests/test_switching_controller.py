@@ -261,6 +261,13 @@ def linear_field(seed=0):
     return PolynomialJacobianField(1).fit(Y, U, U @ A.T), A
 
 
+def steep_field():
+    """A virtual-space-like field on grid coordinates around (4, 4): a full-speed step moves them ~0.1 units."""
+    rng = np.random.default_rng(0)
+    Y, U = rng.uniform(3.0, 5.0, (200, 2)), rng.uniform(-6.0, 6.0, (200, 2))
+    return PolynomialJacobianField(1).fit(Y, U, U @ np.array([[1.0, 1.2], [1.2, 1.0]]).T)
+
+
 def settle_trials(offset, noise, n=500, seed=0):
     """Stand still with sensor-2 readings `offset` from the goal plus noise of std `noise` (learned by the model)
     until the controller decides: (share of trials that ended the task, median steps to the decision)."""
@@ -626,9 +633,7 @@ def test_the_budget_holds_every_crossing_not_only_one_past_a_missed_replay():
     approach far from the exit) is predicted by the plan's rollout in the virtual field. When sensor 2 does not
     appear, the robot turns back within twice that, out and back (budget_every_crossing, the default). With
     budget_every_crossing=False the budget holds only past a replay and this stretch runs to the watchdog's limit."""
-    rng = np.random.default_rng(0)
-    Y, U = rng.uniform(3.0, 5.0, (200, 2)), rng.uniform(-6.0, 6.0, (200, 2))
-    field = PolynomialJacobianField(1).fit(Y, U, U @ np.array([[1.0, 1.2], [1.2, 1.0]]).T)
+    field = steep_field()
     exit_point = np.array([4.0, 4.0])
     goal = exit_point + 0.6            # a few steps of the plan beyond waypoint_tolerance (0.3)
     c = SwitchingController(DT, max_wheel_speed=6.0, max_retries=3)
@@ -649,6 +654,25 @@ def test_the_budget_holds_every_crossing_not_only_one_past_a_missed_replay():
     out_and_back(replay_only, field, exit_point)
     assert replay_only.longest_blind[1] == predicted
     assert replay_only.longest_blind[0] > replay_only.blind_limit > 2 * predicted
+
+
+def test_a_carried_sensor2_goal_out_of_range_drives_on_by_the_virtual_space():
+    """The learner carries sensor 2's state over readings out of range (a short virtual sensor 2). When that state
+    says the goal is reached, standing still to wait for sensor 2 to confirm waits for a reading that cannot come: the
+    virtual-space plan drives on (virtual_on_carried_goal, the default). A lost reading (NaN; the group not blind)
+    still holds the robot still until a measurement confirms, as does the option off."""
+    field = steep_field()
+    goal_reading, here = np.array([0.17, 0.17]), np.array([4.0, 4.0])
+
+    def step(c, blind):
+        c.set_goal(goal_reading, here + 0.6)
+        return c.command(SPACE_SENSOR2, here, goal_reading + 0.001, field, field, sensor2_measured=False,
+                         blind=blind)[0]
+    driving = SwitchingController(DT, max_wheel_speed=6.0)
+    u = step(driving, blind=True)
+    assert np.any(u) and np.allclose(u, driving._best_constant_command(field, here, here + 0.6, 1.0, None))
+    assert not np.any(step(SwitchingController(DT, max_wheel_speed=6.0), blind=False))
+    assert not np.any(step(SwitchingController(DT, max_wheel_speed=6.0, virtual_on_carried_goal=False), blind=True))
 
 
 def test_still_in_range_after_the_exits_command_the_replay_repeats_it_until_the_wall_is_lost():

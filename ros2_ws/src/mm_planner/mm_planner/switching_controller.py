@@ -116,7 +116,7 @@ class SwitchingController:
                  blind_margin_steps: int = 20, blind_prediction_cap: int = 100, retrace_history_steps: int = 5,
                  replay_routes: bool = True, exit_tolerance: float = 0.05, exit_holds: int = 5,
                  blind_budget: float = 2.0, hold_steps: int = 3, replay_on_loss: bool = True,
-                 budget_every_crossing: bool = True):
+                 budget_every_crossing: bool = True, virtual_on_carried_goal: bool = True):
         if dt <= 0 or max_wheel_speed <= 0 or tolerance <= 0 or horizon < 1:
             raise ValueError('dt, max_wheel_speed, tolerance and horizon must be positive')
         if travel_weight < 0 or manoeuvre_travel_weight < 0:
@@ -155,6 +155,7 @@ class SwitchingController:
         self.hold_steps = hold_steps
         self.replay_on_loss = bool(replay_on_loss)
         self.budget_every_crossing = bool(budget_every_crossing)
+        self.virtual_on_carried_goal = bool(virtual_on_carried_goal)
         self._held: list = []               # each sensor's last reading and how many steps it has been lost since
         self._plan: Optional[np.ndarray] = None
         levels = sorted({s * max_wheel_speed * sign for s in speed_levels for sign in (-1, 1)})
@@ -403,6 +404,13 @@ class SwitchingController:
                 self._turn_back()
             if self.returning:
                 return self._retrace()
+        if (self.virtual_on_carried_goal and blind and space == SPACE_SENSOR2 and not sensor2_measured
+                and sensor2 is not None
+                and (self.settled or np.all(np.abs(np.asarray(sensor2) - self.goal_sensor2) < self.tolerance))):
+            # Sensor 2's readings are out of range and the learner carries its state (a short virtual sensor 2),
+            # which says the goal is reached: standing still until sensor 2 confirms waits for a reading that
+            # cannot come while the robot stands where it is. The virtual-space plan drives on instead.
+            space = SPACE_VIRTUAL
         replaying = bool(self._replay)
         u, reached, error = self._command(space, coordinates, sensor2, virtual_field, sensor2_field, sensor1_jacobian,
                                           bounds, sensor2_box, sensor2_measured)
