@@ -232,7 +232,7 @@ class SwitchingController:
         # longest stretch of the episode as (steps, predicted steps), and why the task cannot go on (None: it can).
         self.blind_steps, self.predicted_blind, self.blind_limit = 0, 0, 0
         self._practised_stretch = False     # the stretch began in a replay (blind_budget applies past it)
-        self._sensor2_last = False          # the last group that saw the wall was sensor 2
+        self._sensor2_last = False          # on the last step a group saw the wall, control was in sensor 2's space
         self._from_sensor2 = False          # the stretch began there (lost in the sensor-2 phase, not a crossing)
         self._blind_runs: list = []         # [command, seconds] runs driven in this stretch (the way back)
         self._last_chance_taken = False     # the one step driven on after the way back stopped fitting (see there)
