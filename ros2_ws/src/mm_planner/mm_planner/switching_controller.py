@@ -439,11 +439,15 @@ class SwitchingController:
         if self._practised_stretch:
             # The states between the exit and sensor 2's first reading in practice: the replay's steps (as driven
             # here, commands faster than max_wheel_speed slowed) but the last.
-            self.predicted_blind = min(self.blind_prediction_cap, max(1, self._replay_total - 1))
+            self._predict_stretch(max(1, self._replay_total - 1))
         else:
-            self.predicted_blind = (self.blind_prediction_cap if coordinates is None
-                                    else self.predict_blind_steps(virtual_field, np.asarray(coordinates, dtype=float),
-                                                                  bounds))
+            self._predict_stretch(self.blind_prediction_cap if coordinates is None
+                                  else self.predict_blind_steps(virtual_field, np.asarray(coordinates, dtype=float),
+                                                                bounds))
+
+    def _predict_stretch(self, steps: int) -> None:
+        """The stretch's predicted length (at most blind_prediction_cap) and the watchdog's limit from it."""
+        self.predicted_blind = min(self.blind_prediction_cap, steps)
         self.blind_limit = int(math.ceil(self.blind_factor * self.predicted_blind)) + self.blind_margin_steps
 
     def predict_blind_steps(self, virtual_field, coordinates: np.ndarray, bounds: Optional[np.ndarray]) -> int:
@@ -555,8 +559,7 @@ class SwitchingController:
             # The wall was lost on the way to the exit (replay_on_loss): the stretch is this replay, begun one step
             # early - its steps as driven, the blind one it starts on included.
             self._practised_stretch = True
-            self.predicted_blind = min(self.blind_prediction_cap, self._replay_total)
-            self.blind_limit = int(math.ceil(self.blind_factor * self.predicted_blind)) + self.blind_margin_steps
+            self._predict_stretch(self._replay_total)
             if self.longest_blind[0] == self.blind_steps:
                 self.longest_blind = (self.blind_steps, self.predicted_blind)
 
