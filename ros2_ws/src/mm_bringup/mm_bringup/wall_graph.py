@@ -93,6 +93,8 @@ LOOP_START_ATTEMPTS = 2      # starts of the loop's nodes before giving up
 class WallGraph:
     """Start the graph (optionally with a recorder already running elsewhere) and run reaching episodes."""
 
+    loop_start_attempts = LOOP_START_ATTEMPTS
+
     def __init__(self, work_dir: Path, exploration_steps: int = 10000, noise_range_fraction: float = 0.0,
                  dropout: float = 0.0, model_path=None, seed: int = 0,
                  graph: Optional[ProcessGraph] = None, dt: float = 0.05, recorder: Optional[str] = None,
@@ -162,13 +164,22 @@ class WallGraph:
                 recorded_topics else []
             extra_args['wheeled_container'] = wait + extra_args['wheeled_sim']
             steps = [('mm_bringup', 'wheeled_container', container, [])]
-        for attempt in range(LOOP_START_ATTEMPTS):
+        try:
+            self._start_loop(steps, extra_args, 'wheeled_sim' if composed else None, recorder, recorded_topics)
+        except BaseException:
+            self.close()            # no node or DDS participant outlives a harness that failed to start
+            raise
+
+    def _start_loop(self, steps, extra_args, shown_name, recorder, recorded_topics) -> None:
+        """Start the loop's nodes one by one and wait for its first steps; start them again when it never starts."""
+        node = self.node
+        for attempt in range(self.loop_start_attempts):
             for package, executable, parameters, published in steps:
                 self.nodes.append(self.graph.start(package, executable, parameters,
                                                    extra_args=extra_args.get(executable, [])))
                 # One node at a time, each seen on the graph before the next starts (simultaneous starts
                 # occasionally left two participants without matching endpoints, and the loop never started).
-                name = 'wheeled_sim' if composed else executable
+                name = shown_name or executable
                 self.spin_until(lambda: name in node.get_node_names(), 60.0, f'{name} to appear')
                 wait = [t for t in published if t in recorded_topics]
                 if recorder and wait:
@@ -181,11 +192,15 @@ class WallGraph:
                 self.spin_until(lambda: len({_ns(m.header.stamp) for m in self.recent_states}) >= 2,
                                 LOOP_START_TIMEOUT, 'the lockstep loop to start')
                 break
-            except TimeoutError:
-                if attempt + 1 == LOOP_START_ATTEMPTS:
-                    raise
+            except TimeoutError as stall:
+                # The nodes' own words on the stall (unmatched peers, a state waiting for its command), shown where
+                # the run is watched: their log files may be gone with the work directory (a CI run's tmp).
+                logs = '\n'.join(f'--- {n.label} (last lines) ---\n{self.graph.log_tail(n, 15)}' for n in self.nodes)
+                if attempt + 1 == self.loop_start_attempts:
+                    raise TimeoutError(f'{stall}, in {self.loop_start_attempts} starts of the loop\'s nodes\n{logs}') \
+                        from stall
                 print(f'[wall_graph] the lockstep loop did not start within {LOOP_START_TIMEOUT:.0f} s: '
-                      f'restarting {[n.label for n in self.nodes]}', flush=True)
+                      f'restarting {[n.label for n in self.nodes]}\n{logs}', flush=True)
                 for n in reversed(self.nodes):
                     self.graph.stop(n)
                 self.nodes.clear()
