@@ -642,8 +642,9 @@ def test_the_budget_holds_every_crossing_not_only_one_past_a_missed_replay():
     steps, predicted = c.longest_blind
     assert not c._practised_stretch and 1 < predicted < 20
     assert steps <= 2 * predicted and c.watchdog_trips == 1
-    # Begun where sensor 2 last saw the wall (a sensor-2 manoeuvre left its range) it is no crossing: the watchdog.
-    in_sensor2 = SwitchingController(DT, max_wheel_speed=6.0, max_retries=3)
+    # Begun where sensor 2 last saw the wall (a sensor-2 manoeuvre left its range) it is no crossing: the budget does
+    # not hold it (the watchdog's margin does, sensor2_loss_margin_only: off here to show the budget alone).
+    in_sensor2 = SwitchingController(DT, max_wheel_speed=6.0, max_retries=3, sensor2_loss_margin_only=False)
     in_sensor2.set_goal(np.array([0.17, 0.17]), goal, exit_point)
     in_sensor2.command(SPACE_SENSOR2, None, np.array([0.1, 0.1]), field, field)
     for _ in range(2 * predicted + 2):
@@ -883,3 +884,34 @@ def test_a_model_whose_rehearsal_fails_is_rejected_and_explored_on(paper_robot_a
     assert agent.phase == ControllerStatus.PHASE_EXPLORING and 'model rejected' in agent.detail
     assert decisions[-1].command is not None                      # the state of the rejection is answered
     assert 'WAITING_FOR_GOAL' not in {d.phase_name for d in decisions}
+
+
+def test_a_stretch_begun_in_sensor2_range_is_watched_with_the_margin_alone():
+    """A sensor-2 manoeuvre that leaves sensor 2's range starts a stretch with no crossing ahead: the plan's rollout
+    to the route's goal (here beyond blind_prediction_cap) says nothing about the way back, and its limit
+    (1.5 x 100 + 20 steps) let the robot wander blind for 170 steps. The watchdog's margin alone holds it
+    (sensor2_loss_margin_only, the default); a crossing begun from sensor 1 keeps the rollout's limit."""
+    field = steep_field()
+    here, far_goal = np.array([4.0, 4.0]), np.array([100.0, 100.0])
+
+    def blind_steps_until_return(c, lost_in_sensor2):
+        c.set_goal(np.array([0.17, 0.17]), far_goal)
+        if lost_in_sensor2:
+            c.command(SPACE_SENSOR2, None, np.array([0.1, 0.1]), field, field)
+        else:
+            c.command(SPACE_SENSOR1, here, None, field, None, sensor1_jacobian=np.eye(2))
+        for _ in range(300):
+            c.command(SPACE_VIRTUAL, here, None, field, None, blind=True)
+            if c.returning:
+                return c.blind_steps
+        return None
+
+    margin_only = SwitchingController(DT, max_wheel_speed=6.0)
+    assert blind_steps_until_return(margin_only, True) == margin_only.blind_margin_steps + 1
+    assert margin_only.predicted_blind == margin_only.blind_prediction_cap       # the rollout stays the stretch's
+    off = SwitchingController(DT, max_wheel_speed=6.0, sensor2_loss_margin_only=False)
+    assert blind_steps_until_return(off, True) == off.blind_limit + 1 == 171
+    crossing = SwitchingController(DT, max_wheel_speed=6.0, blind_budget=0)
+    assert blind_steps_until_return(crossing, False) == 171
+
+
