@@ -350,7 +350,9 @@ def result_json(graph_cells: dict, matrix: list, n_tasks: int, complete: bool, n
 def main(argv=None) -> int:
     """Run parts of the benchmark and merge them into the JSON (for runs that do not fit in one sitting)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument('--output', default='results/wall_task.json')
+    parser.add_argument('--output', default='results/wall_task.json',
+                        help='merged into when it exists: its matrix cells are kept and only missing ones run (a '
+                             'fresh matrix needs a new path); the graph and precision cells asked for run again')
     parser.add_argument('--graph', type=int, nargs='*', default=[],
                         help=f'graph headline budgets to run (of {GRAPH_BUDGETS}: their rehearsals as make bench '
                              'runs them)')
