@@ -913,5 +913,3 @@ def test_a_stretch_begun_in_sensor2_range_is_watched_with_the_margin_alone():
     assert blind_steps_until_return(off, True) == off.blind_limit + 1 == 171
     crossing = SwitchingController(DT, max_wheel_speed=6.0, blind_budget=0)
     assert blind_steps_until_return(crossing, False) == 171
-
-

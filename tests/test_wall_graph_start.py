@@ -50,6 +50,6 @@ def test_a_loop_that_never_starts_fails_with_its_nodes_logs_and_leaves_no_node_r
         NeverStarts(tmp_path, exploration_steps=300, model_path='', graph=graph)
     assert len(graph.nodes) == 3 and not any(graph.running().values())
     text = str(failed.value)
-    assert 'in 1 starts' in text
+    assert 'after 1 start(s)' in text
     assert all(f'--- {label} (last lines) ---' in text
                for label in ('wheeled_sim', 'switching_controller', 'sensor_manifold'))

@@ -197,8 +197,8 @@ class WallGraph:
                 # the run is watched: their log files may be gone with the work directory (a CI run's tmp).
                 logs = '\n'.join(f'--- {n.label} (last lines) ---\n{self.graph.log_tail(n, 15)}' for n in self.nodes)
                 if attempt + 1 == self.loop_start_attempts:
-                    raise TimeoutError(f'{stall}, in {self.loop_start_attempts} starts of the loop\'s nodes\n{logs}') \
-                        from stall
+                    raise TimeoutError(f'{stall}, after {self.loop_start_attempts} start(s) of the loop\'s nodes\n'
+                                       f'{logs}') from stall
                 print(f'[wall_graph] the lockstep loop did not start within {LOOP_START_TIMEOUT:.0f} s: '
                       f'restarting {[n.label for n in self.nodes]}\n{logs}', flush=True)
                 for n in reversed(self.nodes):
