@@ -32,8 +32,9 @@ the next practised route, or fails with the reason once `max_retries` routes wer
 with sensor 1 last in sight) is held to a tighter budget while other routes remain: `blind_budget` times its
 predicted length for the whole stretch, out and back, counted from where a replay ran out or from the wall's loss
 when none is under way (see _turn_back_now). A stretch begun in sensor 2's range (a sensor-2 manoeuvre left it) is
-not: turned back, the robot left it again and again. Durations are in steps and distances in readings or grid
-units: nothing here knows the robot's size.
+not (turned back that soon, the robot left it again and again); the watchdog watches it with its margin alone
+(sensor2_loss_margin_only). Durations are in steps and distances in readings or grid units: nothing here knows the
+robot's size.
 """
 from __future__ import annotations
 
