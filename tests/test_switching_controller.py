@@ -545,13 +545,14 @@ def test_at_the_route_exit_the_practised_commands_are_replayed():
     """The route's exit is approached to within exit_tolerance (closer than waypoint_tolerance), then the excursion's
     commands are replayed as driven: a command faster than max_wheel_speed is slowed and lasts longer on the same
     arc, so the robot ends where the practised commands took it. The blind stretch is predicted as the route's
-    practised blind length (its replay, as driven here, but the last step); once the replay is done, the
-    virtual-space plan goes on."""
+    practised blind length (its replay, as driven here, but the last step); once the replay is done, its last command
+    goes on for a step, then the virtual-space plan."""
     robot = WheeledRobot()
     field, _ = linear_field()
     exit_point = np.array([4.0, 4.0])
     replay = np.array([[7.0, 3.5]] * 3 + [[2.0, 2.0]] * 4 + [[0.0, 0.0]] + [[-1.0, 1.0]] * 2)
-    c = SwitchingController(DT, max_wheel_speed=6.0, waypoint_tolerance=0.3, exit_tolerance=0.05)
+    # blind_budget=0: which commands come, not when a miss turns back (the budget's own tests).
+    c = SwitchingController(DT, max_wheel_speed=6.0, waypoint_tolerance=0.3, exit_tolerance=0.05, blind_budget=0)
     c.set_goal(np.array([0.17, 0.17]), np.array([9.0, 9.0]), exit_point, replay=replay)
     J = np.eye(2)
     u, _, error = c.command(SPACE_SENSOR1, exit_point + 0.1, None, field, None, J)     # within 0.3, not 0.05
@@ -574,7 +575,10 @@ def test_at_the_route_exit_the_practised_commands_are_replayed():
     for v in replay:
         practised, _ = robot.step(practised, v, DT)
     assert np.allclose(pose, practised, atol=1e-9)
-    # The replay done and still blind: the virtual-space plan toward the route's goal coordinates.
+    # The replay done and still blind: its last command once more (replay_overrun_steps), then the virtual-space
+    # plan toward the route's goal coordinates.
+    assert np.array_equal(u, replay[-1])
+    u, _, _ = c.command(SPACE_VIRTUAL, exit_point, None, field, None, blind=True)
     assert np.allclose(u, c._best_constant_command(field, exit_point, np.array([9.0, 9.0]), 1.0, None))
     # The paper's method: no replay, the exit counts as reached at waypoint_tolerance and the plan drives on.
     paper = SwitchingController(DT, max_wheel_speed=6.0, replay_routes=False)
@@ -583,6 +587,35 @@ def test_at_the_route_exit_the_practised_commands_are_replayed():
     assert paper.waypoint is None and not paper._replay
     with pytest.raises(ValueError, match='replay'):
         c.set_goal(np.array([0.17, 0.17]), np.array([9.0, 9.0]), exit_point, replay=np.full((2, 2), np.nan))
+
+
+def test_a_replay_that_ran_out_blind_carries_its_last_command_on():
+    """A one-step route: the practised turn in place, two commands, saw sensor 2 after one blind step. Begun a little
+    off the practised exit, the replay runs out still blind; its last command goes on (replay_overrun_steps, 1 by
+    default) before the virtual-space plan, and sensor 2 found that way ends the stretch within twice the practised
+    one. A replay that ran out with sensor 1 in sight carries nothing on; replay_overrun_steps=0 turns it off."""
+    field, _ = linear_field()
+    exit_point, goal, replay = np.array([4.0, 4.0]), np.array([9.0, 9.0]), np.array([[-2.0, 2.0]] * 2)
+
+    def after_replay(c, space=SPACE_VIRTUAL):
+        c.set_goal(np.array([0.17, 0.17]), goal, exit_point, replay=replay)
+        driven = [c.command(SPACE_SENSOR1, exit_point, None, field, None, np.eye(2))[0]]
+        driven += [c.command(space, exit_point, None, field, None, np.eye(2))[0] for _ in range(2)]
+        assert np.array_equal(driven[:2], replay)
+        return driven[-1]
+
+    c = SwitchingController(DT, max_wheel_speed=6.0)
+    assert np.array_equal(after_replay(c), replay[-1]) and c.predicted_blind == 1
+    c.command(SPACE_SENSOR2, None, np.array([0.1, 0.1]), field, field)         # sensor 2 sees the wall
+    assert c.longest_blind == (2, 1) and c.watchdog_trips == 0
+    plan = c._best_constant_command(field, exit_point, goal, 1.0, None)
+    assert not np.allclose(plan, replay[-1])
+    in_sight = SwitchingController(DT, max_wheel_speed=6.0, exit_holds=0)
+    assert np.allclose(after_replay(in_sight, SPACE_SENSOR1), plan)
+    off = SwitchingController(DT, max_wheel_speed=6.0, replay_overrun_steps=0)
+    assert not np.array_equal(after_replay(off), replay[-1])
+    with pytest.raises(ValueError, match='replay_overrun_steps'):
+        SwitchingController(DT, replay_overrun_steps=-1)
 
 
 def out_and_back(c, field, exit_point, max_steps=200):

@@ -1,0 +1,16 @@
+"""How the wall tuning script ranks settings (pure logic; the runs themselves are measured by `make bench`)."""
+from mm_bringup.tune_wall import summarize
+
+
+def row(controller, noisy, success, over_2x):
+    return dict(exploration_steps=3000, explorer={}, controller=controller, noisy=noisy, ready=True, samples=4000,
+                success=success, share_blind_over_2x=over_2x)
+
+
+def test_the_blind_rule_takes_the_fewest_long_stretches_among_settings_as_successful_per_noise_condition():
+    rows = [row({}, False, 1.0, 0.03), row({'a': 1}, False, 1.0, 0.001), row({'a': 2}, False, 0.98, 0.0),
+            row({}, True, 0.974, 0.057), row({'a': 1}, True, 0.972, 0.042), row({'a': 2}, True, 0.95, 0.01)]
+    ranked = [(s['noisy'], s['controller']) for s in summarize(rows, 'blind')]
+    # Clean first; a setting that gives up more than SUCCESS_SLACK of success ranks behind, however short its stretches.
+    assert ranked == [(False, {'a': 1}), (False, {}), (False, {'a': 2}),
+                      (True, {'a': 1}), (True, {}), (True, {'a': 2})]
