@@ -537,8 +537,36 @@ def test_the_retrace_goes_on_back_along_the_path_before_the_stretch():
         u, _, _ = c._retrace()
         pose, _ = robot.step(pose, u, DT)
     assert np.allclose(pose, poses[-6], atol=1e-9)        # back where the kept history began
-    u, _, _ = c._retrace()                                 # nothing left and still blind: lost, with the reason
+    for _ in range(c.lost_wait_steps):                     # nothing left and still blind: fresh readings standing,
+        u, _, _ = c._retrace()
+        assert not np.any(u) and c.failure is None
+    u, _, _ = c._retrace()                                 # then lost, with the reason
     assert not np.any(u) and c.failure.startswith('lost')
+
+
+def test_back_where_a_sensor_last_saw_the_wall_and_still_blind_the_robot_stands_for_fresh_readings():
+    """At the retrace's end, still blind: at the range's edge a noisy reading falls out of range as often as not, so
+    the robot stands still for lost_wait_steps (5 by default) fresh readings before it fails 'lost'; a sighting among
+    them ends the stretch as any other (the next route); lost_wait_steps=0 fails at once."""
+    field, _ = linear_field()
+    exit_point, replay = np.array([4.0, 4.0]), np.array([[1.0, 1.0]] * 6)
+    for sighted, waits in ((True, 5), (False, 5), (False, 0)):
+        c = SwitchingController(DT, max_wheel_speed=6.0, max_retries=3,
+                                **({} if waits == 5 else {'lost_wait_steps': 0}))
+        c.set_goal(np.array([0.17, 0.17]), np.array([9.0, 9.0]), exit_point, replay=replay)
+        c.command(SPACE_SENSOR1, exit_point, None, field, None, np.eye(2))
+        for _ in range(200):                           # out, then back along the whole path
+            c.command(SPACE_VIRTUAL, exit_point, None, field, None, blind=True)
+            if c.returning and not c._path:
+                break
+        stood = [c.command(SPACE_VIRTUAL, exit_point, None, field, None, blind=True)[0] for _ in range(waits)]
+        assert not np.any(stood) and c.failure is None
+        if sighted:
+            c.command(SPACE_SENSOR1, exit_point, None, field, None, np.eye(2))
+            assert c.failure is None and not c.returning and c.retries == 1
+        else:
+            u, _, _ = c.command(SPACE_VIRTUAL, exit_point, None, field, None, blind=True)
+            assert not np.any(u) and c.failure.startswith('lost')
 
 
 def test_at_the_route_exit_the_practised_commands_are_replayed():
