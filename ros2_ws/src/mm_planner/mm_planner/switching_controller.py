@@ -124,7 +124,7 @@ class SwitchingController:
     0.042 at mean success 0.974 -> 0.972 (2: 0.044, 4: 0.046), results/tune_wall_replay_overrun.json),
     lost_wait_steps (steps the robot stands still for fresh readings where the watchdog's retrace ended still blind,
     before it fails 'lost': back where a sensor last saw the wall, at the range's edge, a noisy reading falls out of
-    range as often as not; on the same tuning models, 80 noisy `paper` cells: mean success 0.972 -> 0.976 (90 -> 77
+    range as often as not; on the same tuning models, 80 noisy `paper` cells: mean success 0.972 -> 0.976 (88 -> 78
     failed episodes of 3 200), share over 2x 0.046 either way; 10 steps on 40 cells as 5; clean cells unchanged,
     results/tune_wall_lost_wait.json),
     hold_steps (sees_nothing: a lost reading stands for the sensor's last one for this many steps when judging whether
