@@ -1,4 +1,4 @@
-"""How the wall tuning script ranks settings (pure logic; the runs themselves are measured by `make bench`)."""
+"""How the wall tuning script ranks settings (pure logic; its runs are in results/tune_wall_*.json)."""
 from mm_bringup.tune_wall import summarize
 
 

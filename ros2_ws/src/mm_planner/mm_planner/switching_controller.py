@@ -6,15 +6,15 @@ and once sensor 2 is in range control switches to the sensor-2 readings themselv
 
 Beyond the paper, the blind stretch is crossed as it was crossed in practice: the route is one practised excursion
 (where it left sensor-1 range and the commands it drove from there until sensor 2 first saw the wall). The robot drives
-to that exit with sensor-1 control, to within `exit_tolerance` grid units (or until it loses the wall near the exit,
-at the range's edge, as the excursion did), and replays those commands; the virtual space
-tracks the state meanwhile and takes over if the replay ends with sensor 2 still out of sight (after its last command
-went on for `replay_overrun_steps`: begun a little off the practised exit, a marginal crossing misses by a step), or if
-the approach got stuck farther than `waypoint_tolerance` from the exit (from there the commands would lead elsewhere). A pose relative to
-an infinite wall is fixed by its sensor-1 coordinates, and the same commands from the same pose drive the same path, so
-the crossing no longer depends on how well the extrapolated field predicts far from the range (on the tuning seeds the
-field's own plan missed sensor 2 on 15-40 % of the tasks of some explorations, standing still where the field said the
-goal was). `replay_routes=False` gives the paper's method: the virtual-space plan alone.
+to that exit with sensor-1 control, to within `exit_tolerance` grid units (or until it loses the wall near the exit, at
+the range's edge, as the excursion did), and replays those commands; the virtual space tracks the state meanwhile and
+takes over if the replay ends with sensor 2 still out of sight (after its last command went on for
+`replay_overrun_steps`: begun a little off the practised exit, a marginal crossing misses by a step), or if the approach
+got stuck farther than `waypoint_tolerance` from the exit (from there the commands would lead elsewhere). A pose
+relative to an infinite wall is fixed by its sensor-1 coordinates, and the same commands from the same pose drive the
+same path, so the crossing no longer depends on how well the extrapolated field predicts far from the range (on the
+tuning seeds the field's own plan missed sensor 2 on 15-40 % of the tasks of some explorations, standing still where the
+field said the goal was). `replay_routes=False` gives the paper's method: the virtual-space plan alone.
 
 In every space the learned Jacobian field J(y) predicts how a command moves the state (y' = J(y) u). Plain
 one-step Jacobian control stalls at the nonholonomic singularity near "parallel to the wall" (no command moves the
@@ -548,7 +548,8 @@ class SwitchingController:
 
     def _retrace(self):
         """Next command back along the path (see _remember): the last run reversed, sped up to max_wheel_speed (the
-        same arc in less time). Nothing left to retrace and still blind: the wall cannot be found again."""
+        same arc in less time). Nothing left to retrace and still blind: standing still for fresh readings
+        (lost_wait_steps), then the wall cannot be found again."""
         u = self._follow(self._path, backward=True)
         if u is None and self._lost_waits < self.lost_wait_steps:
             # Back where a sensor last saw the wall, and still blind: there, at the range's edge, a noisy reading
