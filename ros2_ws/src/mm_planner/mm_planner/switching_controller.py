@@ -581,13 +581,17 @@ class SwitchingController:
             runs.pop(at)
         return (-u if backward else u) * (covered / self.dt)
 
+    def _slowed(self, u: np.ndarray) -> np.ndarray:
+        """One step of practised command `u` as the replay drives it: slowed to max_wheel_speed on the same arc."""
+        return u * min(1.0, self.max_wheel_speed / float(np.max(np.abs(u))))
+
     def _start_replay(self) -> None:
         """At the route's exit: replay its practised commands (equal consecutive ones merged into runs)."""
         self._replay = []
         moving = [u for u in self._route_replay if np.any(u)]
         self._exit_command, self._exit_holds = (np.asarray(moving[0], dtype=float) if moving else None), 0
         self._overrun_command = np.asarray(moving[-1], dtype=float) if moving else None
-        self._overrun_left = self.replay_overrun_steps
+        self._overrun_left = self.replay_overrun_steps if moving else 0
         for u in self._route_replay:
             if self._replay and np.array_equal(self._replay[-1][0], u):
                 self._replay[-1][1] += self.dt
@@ -670,20 +674,18 @@ class SwitchingController:
             # Still in range after the exit's command: the approach (from inside the range) stopped short of the
             # practised exit, the last in-range state. Its command again, until the wall is lost as in practice.
             self._exit_holds += 1
-            return self._exit_command * min(1.0, self.max_wheel_speed / float(np.max(np.abs(self._exit_command)))), \
-                False, float('nan')
+            return self._slowed(self._exit_command), False, float('nan')
         u = self._follow(self._replay, backward=False)
         if u is not None:                 # crossing as practised (module docstring)
             return u, False, float('nan')
         if self._overrun_left and not self.blind_steps:
             self._overrun_left = 0        # the replay ran out with a sensor in sight: nothing to carry on
-        if self._overrun_left and self._overrun_command is not None:
+        if self._overrun_left:
             # The replay ran out with no sensor in sight, where the practised excursion saw sensor 2: started a little
             # off the practised exit, a marginal crossing misses by a step or two. Its last command goes on, as the
             # excursion was moving, before the virtual-space plan takes over.
             self._overrun_left -= 1
-            u = self._overrun_command
-            return u * min(1.0, self.max_wheel_speed / float(np.max(np.abs(u)))), False, float('nan')
+            return self._slowed(self._overrun_command), False, float('nan')
         if coordinates is None:
             return np.zeros(2), False, float('nan')
         coordinates = np.asarray(coordinates, dtype=float)
