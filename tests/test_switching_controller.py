@@ -567,6 +567,8 @@ def test_back_where_a_sensor_last_saw_the_wall_and_still_blind_the_robot_stands_
         else:
             u, _, _ = c.command(SPACE_VIRTUAL, exit_point, None, field, None, blind=True)
             assert not np.any(u) and c.failure.startswith('lost')
+    with pytest.raises(ValueError, match='lost_wait_steps'):
+        SwitchingController(DT, lost_wait_steps=-1)
 
 
 def test_at_the_route_exit_the_practised_commands_are_replayed():
