@@ -268,6 +268,16 @@ def steep_field():
     return PolynomialJacobianField(1).fit(Y, U, U @ np.array([[1.0, 1.2], [1.2, 1.0]]).T)
 
 
+def at_exit(c, coordinates, field, J=None):
+    """The route's exit measured exit_settle_steps times while the robot stands for the readings: the replay's first
+    command (or the approach's next one if their mean is not within exit_tolerance). A route without practised
+    commands has nothing to replay: the exit is the first reading's."""
+    J = np.eye(2) if J is None else J
+    for _ in range(c.exit_settle_steps - 1 if c._route_replay is not None else 0):
+        assert not np.any(c.command(SPACE_SENSOR1, coordinates, None, field, None, J)[0])
+    return c.command(SPACE_SENSOR1, coordinates, None, field, None, J)[0]
+
+
 def settle_trials(offset, noise, n=500, seed=0):
     """Stand still with sensor-2 readings `offset` from the goal plus noise of std `noise` (learned by the model)
     until the controller decides: (share of trials that ended the task, median steps to the decision)."""
@@ -554,7 +564,7 @@ def test_back_where_a_sensor_last_saw_the_wall_and_still_blind_the_robot_stands_
         c = SwitchingController(DT, max_wheel_speed=6.0, max_retries=3,
                                 **({} if waits == 5 else {'lost_wait_steps': 0}))
         c.set_goal(np.array([0.17, 0.17]), np.array([9.0, 9.0]), exit_point, replay=replay)
-        c.command(SPACE_SENSOR1, exit_point, None, field, None, np.eye(2))
+        at_exit(c, exit_point, field)
         for _ in range(200):                           # out, then back along the whole path
             c.command(SPACE_VIRTUAL, exit_point, None, field, None, blind=True)
             if c.returning and not c._path:
@@ -588,7 +598,7 @@ def test_at_the_route_exit_the_practised_commands_are_replayed():
     u, _, error = c.command(SPACE_SENSOR1, exit_point + 0.1, None, field, None, J)     # within 0.3, not 0.05
     assert error == pytest.approx(np.hypot(0.1, 0.1)) and np.allclose(u, c.jacobian_step(J, -np.full(2, 0.1)))
     start = pose = (0.0, 0.6, -1.2)
-    u, _, _ = c.command(SPACE_SENSOR1, exit_point + 0.01, None, field, None, J)
+    u = at_exit(c, exit_point + 0.01, field, J)
     driven = [u]
     while len(driven) < 20:
         pose, _ = robot.step(pose, driven[-1], DT)
@@ -619,6 +629,36 @@ def test_at_the_route_exit_the_practised_commands_are_replayed():
         c.set_goal(np.array([0.17, 0.17]), np.array([9.0, 9.0]), exit_point, replay=np.full((2, 2), np.nan))
 
 
+def test_at_the_exit_the_robot_stands_for_readings_and_replays_only_from_their_mean():
+    """One noisy estimate within exit_tolerance is no practised pose: the robot stands for exit_settle_steps readings
+    and starts the replay only when their mean is within exit_tolerance; otherwise it approaches on from the mean.
+    Losing the wall while it stands there starts the replay on that blind step, as on the approach (replay_on_loss)."""
+    field, _ = linear_field()
+    exit_point, goal, replay = np.array([4.0, 4.0]), np.array([9.0, 9.0]), np.array([[2.0, 2.0]] * 3)
+    J = np.eye(2)
+    c = SwitchingController(DT, max_wheel_speed=6.0, exit_tolerance=0.05, exit_settle_steps=4, blind_budget=0)
+    c.set_goal(np.array([0.17, 0.17]), goal, exit_point, replay=replay)
+    off = [exit_point + [0.03, 0.0], exit_point + 0.12, exit_point + 0.1, exit_point + 0.1]
+    for y in off[:-1]:
+        u, _, _ = c.command(SPACE_SENSOR1, y, None, field, None, J)
+        assert not np.any(u) and not c._replay
+    u, _, _ = c.command(SPACE_SENSOR1, off[-1], None, field, None, J)
+    assert not c._replay and np.allclose(u, c.jacobian_step(J, exit_point - np.mean(off, axis=0)))
+    there = [exit_point + [0.01, 0.0], exit_point - 0.02, exit_point + 0.08]    # one estimate outside, the mean in
+    for y in there:
+        u, _, _ = c.command(SPACE_SENSOR1, y, None, field, None, J)
+        assert not np.any(u) and not c._replay
+    u, _, _ = c.command(SPACE_SENSOR1, exit_point, None, field, None, J)
+    assert np.array_equal(u, replay[0]) and c._replay_steps() == 2 and c.waypoint is None
+    assert all(np.any(v) for v, _ in c._path)             # standing took no place on the way back
+    c.set_goal(np.array([0.17, 0.17]), goal, exit_point, replay=replay)
+    assert not np.any(c.command(SPACE_SENSOR1, exit_point, None, field, None, J)[0])
+    u, _, _ = c.command(SPACE_VIRTUAL, exit_point, None, field, None, blind=True)
+    assert np.array_equal(u, replay[0]) and c._practised_stretch
+    with pytest.raises(ValueError, match='exit_settle_steps'):
+        SwitchingController(DT, exit_settle_steps=-1)
+
+
 def test_a_replay_that_ran_out_blind_carries_its_last_command_on():
     """A one-step route: the practised turn in place, two commands, saw sensor 2 after one blind step. Begun a little
     off the practised exit, the replay runs out still blind; its last command goes on (replay_overrun_steps, 1 by
@@ -629,7 +669,7 @@ def test_a_replay_that_ran_out_blind_carries_its_last_command_on():
 
     def after_replay(c, space=SPACE_VIRTUAL):
         c.set_goal(np.array([0.17, 0.17]), goal, exit_point, replay=replay)
-        driven = [c.command(SPACE_SENSOR1, exit_point, None, field, None, np.eye(2))[0]]
+        driven = [at_exit(c, exit_point, field)]
         driven += [c.command(space, exit_point, None, field, None, np.eye(2))[0] for _ in range(2)]
         assert np.array_equal(driven[:2], replay)
         return driven[-1]
@@ -654,7 +694,7 @@ def out_and_back(c, field, exit_point, max_steps=200):
     the commands driven blind before it turned back."""
     robot = WheeledRobot()
     exit_pose = pose = (0.0, 0.6, -1.2)
-    u, _, _ = c.command(SPACE_SENSOR1, exit_point, None, field, None, np.eye(2))
+    u = at_exit(c, exit_point, field)
     out = []
     for _ in range(max_steps):
         pose, _ = robot.step(pose, u, DT)
@@ -748,7 +788,7 @@ def test_still_in_range_after_the_exits_command_the_replay_repeats_it_until_the_
     replay = np.array([[-2.0, 2.0], [5.0, 5.0], [5.0, 5.0], [1.0, -1.0]])
     c = SwitchingController(DT, max_wheel_speed=6.0, exit_holds=2)
     c.set_goal(np.array([0.17, 0.17]), np.array([9.0, 9.0]), exit_point, replay=replay)
-    driven = [c.command(SPACE_SENSOR1, exit_point, None, field, None, np.eye(2))[0]]
+    driven = [at_exit(c, exit_point, field)]
     for _ in range(3):                              # still in range: the exit's command again, twice at most
         driven.append(c.command(SPACE_SENSOR1, exit_point + 0.01, None, field, None, np.eye(2))[0])
     assert np.array_equal(driven, [replay[0]] * 3 + [replay[1]])
@@ -812,8 +852,7 @@ def test_a_retry_replays_its_own_route():
     c.set_goal(np.array([0.17, 0.17]), first[1], first[0], replay=first[2], alternatives=[second])
     c._restart_route()
     assert np.array_equal(c.waypoint, second[0]) and np.array_equal(c._route_replay, second[2])
-    u, _, _ = c.command(SPACE_SENSOR1, second[0], None, field, None, np.eye(2))
-    assert np.array_equal(u, second[2][0])
+    assert np.array_equal(at_exit(c, second[0], field), second[2][0])
 
 
 @pytest.fixture(scope='module')
