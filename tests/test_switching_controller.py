@@ -655,6 +655,11 @@ def test_at_the_exit_the_robot_stands_for_readings_and_replays_only_from_their_m
     assert not np.any(c.command(SPACE_SENSOR1, exit_point, None, field, None, J)[0])
     u, _, _ = c.command(SPACE_VIRTUAL, exit_point, None, field, None, blind=True)
     assert np.array_equal(u, replay[0]) and c._practised_stretch
+    # Sensor 2 in sight meanwhile (control switches to it): the readings stood for are from another pose, dropped.
+    c.set_goal(np.array([0.17, 0.17]), goal, exit_point, replay=replay)
+    c.command(SPACE_SENSOR1, exit_point, None, field, None, J)
+    c.command(SPACE_SENSOR2, None, np.array([0.1, 0.1]), field, field)
+    assert c._exit_settle is None
     with pytest.raises(ValueError, match='exit_settle_steps'):
         SwitchingController(DT, exit_settle_steps=-1)
 
