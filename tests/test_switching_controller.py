@@ -632,7 +632,8 @@ def test_at_the_route_exit_the_practised_commands_are_replayed():
 def test_at_the_exit_the_robot_stands_for_readings_and_replays_only_from_their_mean():
     """One noisy estimate within exit_tolerance is no practised pose: the robot stands for exit_settle_steps readings
     and starts the replay only when their mean is within exit_tolerance; otherwise it approaches on from the mean.
-    Losing the wall while it stands there starts the replay on that blind step, as on the approach (replay_on_loss)."""
+    Losing the wall while it stands there starts the replay on that blind step, as on the approach (replay_on_loss);
+    control switching to sensor 2 drops the readings stood for."""
     field, _ = linear_field()
     exit_point, goal, replay = np.array([4.0, 4.0]), np.array([9.0, 9.0]), np.array([[2.0, 2.0]] * 3)
     J = np.eye(2)
