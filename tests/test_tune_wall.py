@@ -14,3 +14,18 @@ def test_the_blind_rule_takes_the_fewest_long_stretches_among_settings_as_succes
     # Clean first; a setting that gives up more than SUCCESS_SLACK of success ranks behind, however short its stretches.
     assert ranked == [(False, {'a': 1}), (False, {}), (False, {'a': 2}),
                       (True, {'a': 1}), (True, {}), (True, {'a': 2})]
+
+
+def test_settings_that_ran_on_different_seeds_are_ranked_on_the_cells_they_share():
+    """A setting run on one more seed, where it failed, is not ranked below one that never met that seed: the
+    ranking compares the cells both ran (the summary keeps every cell's figures beside)."""
+    shared = [dict(row({'a': 1}, True, 1.0, 0.0), layout='paper', robot='default', seed=s) for s in (100, 101)]
+    extra = dict(row({'a': 1}, True, 0.0, 0.5), layout='paper', robot='default', seed=102)
+    other = [dict(row({}, True, 0.99, 0.0), layout='paper', robot='default', seed=s) for s in (100, 101)]
+    for rule in ('success', 'blind', 'item1'):
+        ranked = summarize(shared + [extra] + other, rule)
+        assert [s['controller'] for s in ranked] == [{'a': 1}, {}]
+    first = summarize(shared + [extra] + other)[0]
+    assert (first['cells'], first['mean_success'], first['compared_cells'], first['compared_mean_success']) == (
+        3, 0.667, 2, 1.0)
+    assert summarize(shared + other)[0]['compared_cells'] == 2

@@ -173,7 +173,8 @@ def summarize_search(rows: List[Dict]) -> List[Dict]:
 # Mean successes closer than this are not told apart: over 80 noisy cells of 40 tasks at about 0.97 the standard error
 # of a difference is 0.004, and a setting that changes one episode redraws the reading noise of every later one.
 SUCCESS_SLACK = 0.005
-RULES = {'success': 'highest mean success over every cell',
+# Each rule compares settings on the cells every setting of the noise condition ran (summarize).
+RULES = {'success': 'highest mean success over the cells every setting of the noise condition ran',
          'item1': "most cells meeting issue 11's item 1 (success >= 0.95 within 3 000 samples), then highest mean "
                   'success',
          'blind': "per noise condition (clean first), lowest mean share of episodes blind over 2x (issue 11's item 3) "
@@ -181,37 +182,65 @@ RULES = {'success': 'highest mean success over every cell',
                   'success'}
 
 
+def _meets_item1(row: Dict) -> bool:
+    """Issue 11's item 1 in one cell: success >= 0.95 within SAMPLE_TARGET samples."""
+    return row['success'] >= 0.95 and row.get('samples', math.inf) <= SAMPLE_TARGET
+
+
+def _cell(row: Dict) -> tuple:
+    """The cell a row measured (layout, robot, exploration seed): what settings are compared on."""
+    return row.get('layout'), row.get('robot'), row.get('seed')
+
+
 def summarize(rows: List[Dict], rule: str = 'success') -> List[Dict]:
     """Per setting (exploration budget, explorer, rehearsals, model and controller hyperparameters), over every
     cell it ran (layouts x robots x seeds): ready models, mean success (a model that is not ready counts 0), cells at
     >= 0.95, ready models below 0.8 (announced but failing tasks), cells meeting item 1 and the median samples; best
-    first by `rule` (RULES): the choice takes the first (with 'blind', the first of each noise condition)."""
+    first by `rule` (RULES): the choice takes the first (with 'blind', the first of each noise condition). Settings of
+    one noise condition that ran on different cells (some on more seeds) are ranked on the cells all of them ran
+    (`compared_cells`, `compared_mean_success`, `compared_cells_meeting_item1`, `compared_share_blind_over_2x`; None
+    with no cell in common): means over unequal sets of seeds would rank the seeds, not the settings."""
     by_setting: Dict[str, List[Dict]] = {}
     for row in rows:
         key = {'exploration_steps': row['exploration_steps'], 'explorer': row['explorer'],
                'rehearsals': row.get('rehearsals'), 'model': row.get('model', {}), 'noisy': row.get('noisy', False),
                'controller': row.get('controller', {})}
         by_setting.setdefault(json.dumps(key, sort_keys=True), []).append(row)
+    shared: Dict[bool, set] = {}
+    for key, cells in by_setting.items():
+        noisy = json.loads(key)['noisy']
+        ran = {_cell(r) for r in cells}
+        shared[noisy] = shared[noisy] & ran if noisy in shared else ran
+    compared = {key: [r for r in cells if _cell(r) in shared[json.loads(key)['noisy']]]
+                for key, cells in by_setting.items()}
     summary = [dict(**json.loads(key), cells=len(cells), ready=sum(r['ready'] for r in cells),
                     mean_success=round(float(np.mean([r['success'] for r in cells])), 3),
                     cells_at_095=sum(r['success'] >= 0.95 for r in cells),
                     ready_below_080=sum(r['ready'] and r.get('success_if_used', r['success']) < 0.8 for r in cells),
-                    cells_meeting_item1=sum(r['success'] >= 0.95 and r.get('samples', math.inf) <= SAMPLE_TARGET
-                                            for r in cells),
+                    cells_meeting_item1=sum(_meets_item1(r) for r in cells),
                     median_samples=float(np.median([r.get('samples', math.nan) for r in cells])),
                     mean_share_blind_over_2x=_mean_or_none([r['share_blind_over_2x'] for r in cells
-                                                            if r.get('share_blind_over_2x') is not None]))
+                                                            if r.get('share_blind_over_2x') is not None]),
+                    compared_cells=len(compared[key]),
+                    compared_cells_meeting_item1=sum(_meets_item1(r) for r in compared[key]),
+                    compared_mean_success=round(float(np.mean([r['success'] for r in compared[key]])), 3)
+                    if compared[key] else None,
+                    compared_share_blind_over_2x=_mean_or_none([r['share_blind_over_2x'] for r in compared[key]
+                                                                if r.get('share_blind_over_2x') is not None]))
                for key, cells in by_setting.items()]
+
+    def success(s: Dict) -> float:
+        return -math.inf if s['compared_mean_success'] is None else s['compared_mean_success']
     if rule == 'item1':
-        return sorted(summary, key=lambda s: (-s['cells_meeting_item1'], -s['mean_success']))
+        return sorted(summary, key=lambda s: (-s['compared_cells_meeting_item1'], -success(s)))
     if rule == 'blind':
         best = {}
         for s in summary:
-            best[s['noisy']] = max(best.get(s['noisy'], 0.0), s['mean_success'])
+            best[s['noisy']] = max(best.get(s['noisy'], -math.inf), success(s))
         return sorted(summary, key=lambda s: (
-            s['noisy'], s['mean_success'] < best[s['noisy']] - SUCCESS_SLACK,
-            math.inf if s['mean_share_blind_over_2x'] is None else s['mean_share_blind_over_2x'], -s['mean_success']))
-    return sorted(summary, key=lambda s: -s['mean_success'])
+            s['noisy'], success(s) < best[s['noisy']] - SUCCESS_SLACK,
+            math.inf if s['compared_share_blind_over_2x'] is None else s['compared_share_blind_over_2x'], -success(s)))
+    return sorted(summary, key=lambda s: -success(s))
 
 
 def _mean_or_none(values: List[float]) -> Optional[float]:

@@ -103,7 +103,8 @@ def test_learning_loop_takes_the_hyperparameters_under_test():
 
 def test_tuning_rows_of_several_runs_are_summarized_into_one_choice(tmp_path):
     """Layouts tuned in parallel processes print rows; `--rows` merges them and ranks the settings (exploration
-    budget, explorer, rehearsals) by mean success over every cell, a model that is not ready counting 0."""
+    budget, explorer, rehearsals) by mean success over the cells they all ran (rows that name no cell all count), a
+    model that is not ready counting 0."""
     rows = [dict(exploration_steps=3000, explorer={}, rehearsals=0, ready=True, success=1.0, success_if_used=1.0,
                  samples=3000),
             dict(exploration_steps=3000, explorer={}, rehearsals=0, ready=False, success=0.0, success_if_used=0.6,
@@ -127,10 +128,13 @@ def test_tuning_rows_of_several_runs_are_summarized_into_one_choice(tmp_path):
     assert best == dict(exploration_steps=3000, explorer={'excursion_share': 0.3}, rehearsals=0, model={},
                         noisy=False, controller={}, cells=2, ready=2, mean_success=0.925, cells_at_095=1,
                         ready_below_080=0, cells_meeting_item1=0, median_samples=3500.0,
-                        mean_share_blind_over_2x=0.15)
+                        mean_share_blind_over_2x=0.15, compared_cells=2, compared_cells_meeting_item1=0,
+                        compared_mean_success=0.925, compared_share_blind_over_2x=0.15)
     assert other == dict(exploration_steps=3000, explorer={}, rehearsals=0, model={}, noisy=False, controller={},
                          cells=2, ready=1, mean_success=0.5, cells_at_095=1, ready_below_080=0, cells_meeting_item1=1,
-                         median_samples=7500.0, mean_share_blind_over_2x=None)     # rows from before the metric
+                         median_samples=7500.0, mean_share_blind_over_2x=None,     # rows from before the metric
+                         compared_cells=2, compared_cells_meeting_item1=1, compared_mean_success=0.5,
+                         compared_share_blind_over_2x=None)
     assert smaller_budget['exploration_steps'] == 2000 and smaller_budget['cells'] == 1
     assert rehearsed['rehearsals'] == 3 and rehearsed['ready_below_080'] == 1
     # issue 11's item 1 (>= 0.95 within 3 000 samples) ranks first the setting with the most cells meeting it
