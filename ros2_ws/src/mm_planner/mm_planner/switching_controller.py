@@ -11,11 +11,11 @@ it stands for there (or until it loses the wall near the exit, at the range's ed
 those commands; the virtual space tracks the state meanwhile and takes over if the replay ends with sensor 2 still out
 of sight (after its last command went on for `replay_overrun_steps`: begun a little off the practised exit, a marginal
 crossing misses by a step), or if the approach got stuck farther than `waypoint_tolerance` from the exit (from there
-the commands would lead elsewhere). A pose
-relative to an infinite wall is fixed by its sensor-1 coordinates, and the same commands from the same pose drive the
-same path, so the crossing no longer depends on how well the extrapolated field predicts far from the range (on the
-tuning seeds the field's own plan missed sensor 2 on 15-40 % of the tasks of some explorations, standing still where the
-field said the goal was). `replay_routes=False` gives the paper's method: the virtual-space plan alone.
+the commands would lead elsewhere). A pose relative to an infinite wall is fixed by its sensor-1 coordinates, and the
+same commands from the same pose drive the same path, so the crossing no longer depends on how well the extrapolated
+field predicts far from the range (on the tuning seeds the field's own plan missed sensor 2 on 15-40 % of the tasks of
+some explorations, standing still where the field said the goal was). `replay_routes=False` gives the paper's method:
+the virtual-space plan alone.
 
 In every space the learned Jacobian field J(y) predicts how a command moves the state (y' = J(y) u). Plain
 one-step Jacobian control stalls at the nonholonomic singularity near "parallel to the wall" (no command moves the
@@ -651,7 +651,7 @@ class SwitchingController:
                  virtual_field, sensor2_field, sensor1_jacobian: Optional[np.ndarray],
                  bounds: Optional[np.ndarray], sensor2_box: Optional[np.ndarray], sensor2_measured: bool):
         if space == SPACE_SENSOR2:
-            # crossed: sensor-2 control from here, even if it loses the wall (and readings stood for at the exit are old)
+            # crossed: sensor-2 control from here, even if it loses the wall (readings stood for at the exit are old)
             self._replay, self._overrun_left, self._exit_settle = [], 0, None
             error = np.abs(sensor2 - self.goal_sensor2)
             if self.settled or np.all(error < self.tolerance):
