@@ -98,7 +98,7 @@ class SwitchingController:
     readings stood for: the approach stops where that first falls within it, on the side it came from, and under
     noise a pose a centimetre off the practised one can miss sensor 2; 0.02 of 0.05 / 0.03 / 0.02 by
     `mm_bringup.tune_wall --controller` on the same models, 40 noisy `paper` tuning cells (seeds 100-109): share over
-    2x 0.052 -> 0.043 / 0.045 at mean success 0.994 -> 0.988 / 0.993; clean cells' success unchanged; item 1 18 of 20
+    2x 0.052 -> 0.042 / 0.045 at mean success 0.994 -> 0.988 / 0.993; clean cells' success unchanged; item 1 18 of 20
     tuning seeds either way; results/tune_wall_exit_tolerance.json), exit_holds (times the
     exit's command is driven again while sensor 1 still sees the wall after it: the approach from inside the range
     stops short of the practised exit), replay_on_loss (the wall lost within waypoint_tolerance of the route's exit,
