@@ -97,15 +97,17 @@ class SwitchingController:
     plan alone), exit_tolerance [grid units] (how close to the route's exit the replay starts, by the mean of the
     readings stood for: the approach stops where that first falls within it, on the side it came from, and under
     noise a pose a centimetre off the practised one can miss sensor 2; 0.02 of 0.05 / 0.03 / 0.02 by
-    `mm_bringup.tune_wall --controller` on the same models, 40 noisy `paper` tuning cells (seeds 100-109): share over
-    2x 0.052 -> 0.042 / 0.045 at mean success 0.994 -> 0.988 / 0.993; clean cells' success unchanged; item 1 18 of 20
-    tuning seeds either way; results/tune_wall_exit_tolerance.json), exit_holds (times the
-    exit's command is driven again while sensor 1 still sees the wall after it: the approach from inside the range
-    stops short of the practised exit), replay_on_loss (the wall lost within waypoint_tolerance of the route's exit,
-    on the way there, starts the replay on that first blind step: the exit is the excursion's last in-range state,
-    at the range's edge, and noisy readings fall out of range before the approach gets within exit_tolerance; the
-    virtual-space plan from there dithered blind until the watchdog's limit), blind_budget (a crossing, out and
-    back, in multiples of its predicted length; issue 11's target is 2; 0: only the watchdog's limit). Both chosen
+    `mm_bringup.tune_wall --controller --rule blind` on the same models, 80 noisy `paper` tuning cells: share over 2x
+    0.048 -> 0.044 / 0.041 at mean success 0.981 -> 0.974 / 0.977 (seeds 100-109 and 110-119 alike: 0.052 -> 0.045,
+    0.044 -> 0.037), within a noisy run's spread; 40 clean cells' success 1.0 either way; item 1 18 of 20 tuning
+    seeds either way; results/tune_wall_exit_tolerance.json, results/tune_wall_exit_tolerance_item1.json), exit_holds
+    (times the exit's command is driven again while sensor 1 still sees the wall after it: the approach from inside
+    the range stops short of the practised exit), replay_on_loss (the wall lost within waypoint_tolerance of the
+    route's exit, on the way there, starts the replay on that first blind step: the exit is the excursion's last
+    in-range state, at the range's edge, and noisy readings fall out of range before the approach gets within
+    exit_tolerance; the virtual-space plan from there dithered blind until the watchdog's limit), blind_budget (a
+    crossing, out and back, in multiples of its predicted length; issue 11's target is 2; 0: only the watchdog's
+    limit). Both chosen
     together by `mm_bringup.tune_wall --controller` on tuning seeds 100-109 (results/tune_wall_replay_on_loss.json;
     README, "Never wander blind"): over 40 noisy `paper` cells the share of episodes blind over 2x 0.381 -> 0.152
     at mean success 0.986 -> 0.991, over 40 clean ones 0.093 -> 0.03 at 1.0; without noise replay_on_loss changes
