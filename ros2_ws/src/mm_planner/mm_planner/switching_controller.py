@@ -107,42 +107,42 @@ class SwitchingController:
     in-range state, at the range's edge, and noisy readings fall out of range before the approach gets within
     exit_tolerance; the virtual-space plan from there dithered blind until the watchdog's limit), blind_budget (a
     crossing, out and back, in multiples of its predicted length; issue 11's target is 2; 0: only the watchdog's
-    limit). Both chosen
-    together by `mm_bringup.tune_wall --controller` on tuning seeds 100-109 (results/tune_wall_replay_on_loss.json;
-    README, "Never wander blind"): over 40 noisy `paper` cells the share of episodes blind over 2x 0.381 -> 0.152
-    at mean success 0.986 -> 0.991, over 40 clean ones 0.093 -> 0.03 at 1.0; without noise replay_on_loss changes
-    nothing; there the budget held only stretches past a replay that ran out), budget_every_crossing (the budget holds
-    every crossing, not only one past a replay: one with no replay under way, the wall lost on the approach or a route
-    without practised commands, is held to blind_budget times the plan's predicted length; on by `mm_bringup.tune_wall
-    --controller` on tuning seeds 100-109, 40 noisy `paper` cells: share over 2x 0.143 -> 0.079 at mean success 0.991 ->
-    0.989, clean cells unchanged, results/tune_wall_budget_every_crossing.json; a stretch begun in sensor 2's range is
-    not held: that cost 1.5 points of noisy success), virtual_on_carried_goal (sensor 2's readings out of range while
-    the learner carries its state, and that state within tolerance of the goal: drive by the virtual-space plan instead
-    of standing still for sensor 2 to confirm, which waited blind for the learner's 20-step hold; 40 noisy tuning cells,
-    the same models: share over 2x 0.077 -> 0.062 at mean success 0.988 -> 0.987, clean cells unchanged,
+    limit). Both chosen together by `mm_bringup.tune_wall --controller` on tuning seeds 100-109
+    (results/tune_wall_replay_on_loss.json; README, "Never wander blind"): over 40 noisy `paper` cells the share of
+    episodes blind over 2x 0.381 -> 0.152 at mean success 0.986 -> 0.991, over 40 clean ones 0.093 -> 0.03 at 1.0;
+    without noise replay_on_loss changes nothing; there the budget held only stretches past a replay that ran out),
+    budget_every_crossing (the budget holds every crossing, not only one past a replay: one with no replay under way,
+    the wall lost on the approach or a route without practised commands, is held to blind_budget times the plan's
+    predicted length; on by `mm_bringup.tune_wall --controller` on tuning seeds 100-109, 40 noisy `paper` cells: share
+    over 2x 0.143 -> 0.079 at mean success 0.991 -> 0.989, clean cells unchanged,
+    results/tune_wall_budget_every_crossing.json; a stretch begun in sensor 2's range is not held: that cost 1.5 points
+    of noisy success), virtual_on_carried_goal (sensor 2's readings out of range while the learner carries its state,
+    and that state within tolerance of the goal: drive by the virtual-space plan instead of standing still for sensor 2
+    to confirm, which waited blind for the learner's 20-step hold; 40 noisy tuning cells, the same models: share over 2x
+    0.077 -> 0.062 at mean success 0.988 -> 0.987, clean cells unchanged,
     results/tune_wall_virtual_on_carried_goal.json), sensor2_loss_margin_only (a stretch begun where sensor 2 last saw
     the wall is watched with blind_margin_steps alone instead of the limit from the plan's rollout, which reached 170
-    steps when the rollout hit its cap: on 400 noisy tuning tasks 201 of the 207 stretches begun after sensor 2 had
-    seen the wall that found it again did so within 20 steps; 40 noisy tuning cells, the same models: share over 2x
-    0.058 -> 0.054 at mean success 0.987 -> 0.989, clean cells unchanged, results/tune_wall_sensor2_loss_margin.json),
+    steps when the rollout hit its cap: on 400 noisy tuning tasks 201 of the 207 stretches begun after sensor 2 had seen
+    the wall that found it again did so within 20 steps; 40 noisy tuning cells, the same models: share over 2x 0.058 ->
+    0.054 at mean success 0.987 -> 0.989, clean cells unchanged, results/tune_wall_sensor2_loss_margin.json),
     replay_overrun_steps (a replay that ran out with no sensor in sight drives its last moving command this many steps
     more before the virtual-space plan: a route practised as a turn in place that saw sensor 2 after one blind step,
     begun a little off its exit, ended one step short, and the plan's first command drove away; on the same tuning
     models, 40 clean `paper` cells: share over 2x 0.03 -> 0.001 at success 1.0 (2 and 4 alike); 80 noisy cells 0.057 ->
-    0.042 at mean success 0.974 -> 0.972 (2: 0.044, 4: 0.046), results/tune_wall_replay_overrun.json),
-    lost_wait_steps (steps the robot stands still for fresh readings where the watchdog's retrace ended still blind,
-    before it fails 'lost': back where a sensor last saw the wall, at the range's edge, a noisy reading falls out of
-    range as often as not; on the same tuning models, 80 noisy `paper` cells: mean success 0.972 -> 0.976 (88 -> 78
-    failed episodes of 3 200), share over 2x 0.046 either way; 10 steps on 40 cells as 5; clean cells unchanged,
-    results/tune_wall_lost_wait.json), exit_settle_steps (readings the robot stands for once one estimate puts it
-    within exit_tolerance of a route's exit; the replay starts if their mean is within it too, else the approach goes
-    on from the mean; 0 or 1: the first estimate decides. Under noise one estimate is no pose, and the practised
-    commands retrace the practised path only from the practised pose; 80 noisy `paper` tuning cells, the same
-    models: share over 2x 0.053 -> 0.040 at mean success 0.971 -> 0.970 (8: 0.043, 0.969), and with standing steps
-    kept off the retrace's path (_remember) 0.051 -> 0.048 at 0.983 -> 0.981, both within a noisy run's spread;
-    clean cells unchanged, results/tune_wall_exit_settle_length.json, results/tune_wall_exit_settle.json),
-    hold_steps (sees_nothing: a lost reading stands for the sensor's last one for this many steps when judging whether
-    a group sees the wall, the learner's StateTracker default)."""
+    0.042 at mean success 0.974 -> 0.972 (2: 0.044, 4: 0.046), results/tune_wall_replay_overrun.json), lost_wait_steps
+    (steps the robot stands still for fresh readings where the watchdog's retrace ended still blind, before it fails
+    'lost': back where a sensor last saw the wall, at the range's edge, a noisy reading falls out of range as often as
+    not; on the same tuning models, 80 noisy `paper` cells: mean success 0.972 -> 0.976 (88 -> 78 failed episodes of 3
+    200), share over 2x 0.046 either way; 10 steps on 40 cells as 5; clean cells unchanged,
+    results/tune_wall_lost_wait.json), exit_settle_steps (readings the robot stands for once one estimate puts it within
+    exit_tolerance of a route's exit; the replay starts if their mean is within it too, else the approach goes on from
+    the mean; 0 or 1: the first estimate decides. Under noise one estimate is no pose, and the practised commands
+    retrace the practised path only from the practised pose; 80 noisy `paper` tuning cells, the same models: share over
+    2x 0.053 -> 0.040 at mean success 0.971 -> 0.970 (8: 0.043, 0.969), and with standing steps kept off the retrace's
+    path (_remember) 0.051 -> 0.048 at 0.983 -> 0.981, both within a noisy run's spread; clean cells unchanged,
+    results/tune_wall_exit_settle_length.json, results/tune_wall_exit_settle.json), hold_steps (sees_nothing: a lost
+    reading stands for the sensor's last one for this many steps when judging whether a group sees the wall, the
+    learner's StateTracker default)."""
 
     def __init__(self, dt: float, max_wheel_speed: float = 6.0, horizon: int = 12,
                  speed_levels=(1.0, 0.4, 0.12, 0.0), travel_weight: float = 1e-3, tolerance: float = 0.01,
