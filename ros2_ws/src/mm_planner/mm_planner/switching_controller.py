@@ -132,8 +132,8 @@ class SwitchingController:
     0.042 at mean success 0.974 -> 0.972 (2: 0.044, 4: 0.046), results/tune_wall_replay_overrun.json), lost_wait_steps
     (steps the robot stands still for fresh readings where the watchdog's retrace ended still blind, before it fails
     'lost': back where a sensor last saw the wall, at the range's edge, a noisy reading falls out of range as often as
-    not; on the same tuning models, 80 noisy `paper` cells: mean success 0.972 -> 0.976 (88 -> 78 failed episodes of 3
-    200), share over 2x 0.046 either way; 10 steps on 40 cells as 5; clean cells unchanged,
+    not; on the same tuning models, 80 noisy `paper` cells: mean success 0.972 -> 0.976 (88 -> 78 failed episodes of
+    3 200), share over 2x 0.046 either way; 10 steps on 40 cells as 5; clean cells unchanged,
     results/tune_wall_lost_wait.json), exit_settle_steps (readings the robot stands for once one estimate puts it within
     exit_tolerance of a route's exit; the replay starts if their mean is within it too, else the approach goes on from
     the mean; 0 or 1: the first estimate decides. Under noise one estimate is no pose, and the practised commands
