@@ -218,6 +218,8 @@ class SwitchingController:
         self.candidates = np.array(list(product(levels, levels)), dtype=float)
         self.manoeuvres, self.manoeuvre_travel = self._manoeuvres(turn_speed * max_wheel_speed,
                                                                   drive_speed * max_wheel_speed)
+        moving = np.any(self.manoeuvres != 0, axis=2)
+        self._first_commands = self.manoeuvres[np.arange(len(self.manoeuvres)), np.argmax(moving, axis=1)]
         self.goal_sensor2: Optional[np.ndarray] = None
         self.goal_coordinates: Optional[np.ndarray] = None
         self.waypoint: Optional[np.ndarray] = None
@@ -507,15 +509,17 @@ class SwitchingController:
     def _back_into_sensor2(self) -> Optional[np.ndarray]:
         """sensor2_backoff: in sensor-2 control, sensor 2's readings have just gone out of range. The command driven
         when it last saw the wall took it there (the learned field did not foresee it: it knows nothing of the range's
-        edges), so that command is undone (None: there is none), and the manoeuvre under way is abandoned and ruled
-        out until the reading improves (_watch_progress). Without it the manoeuvre went on with the learner's carried
-        state, and the robot looped out of sensor 2's range and back (README, "Backing into sensor 2's range")."""
-        self._plan = None
-        if self._manoeuvre is not None:
-            self._avoid.add(self._manoeuvre)
-            self._manoeuvre = None
+        edges), so that command is undone (None: there is none), the manoeuvre under way is abandoned, and every
+        manoeuvre that begins with that command is ruled out until the reading improves (_watch_progress): ruling out
+        only the one under way, the next best began with the same turn and left the range again, hundreds of times
+        (tuning seed 100, task 31). Without it the manoeuvre went on with the learner's carried state, and the robot
+        looped out of sensor 2's range and back (README, "Backing into sensor 2's range")."""
+        self._plan, self._manoeuvre = None, None
         u, self._last_sensor2_command = self._last_sensor2_command, None
-        return -u if u is not None and np.any(u) else None
+        if u is None or not np.any(u):
+            return None
+        self._avoid |= set(np.flatnonzero(np.all(self._first_commands == u, axis=1)).tolist())
+        return -u
 
     # --- blind watchdog -----------------------------------------------------------------------------------------
     def _start_blind_stretch(self, coordinates: Optional[np.ndarray], virtual_field, bounds) -> None:
