@@ -511,9 +511,9 @@ class SwitchingController:
         when it last saw the wall took it there (the learned field did not foresee it: it knows nothing of the range's
         edges), so that command is undone (None: there is none), the manoeuvre under way is abandoned, and every
         manoeuvre that begins with that command is ruled out until the reading improves (_watch_progress): ruling out
-        only the one under way, the next best began with the same turn and left the range again, hundreds of times
-        (tuning seed 100, task 31). Without it the manoeuvre went on with the learner's carried state, and the robot
-        looped out of sensor 2's range and back (README, "Backing into sensor 2's range")."""
+        only the one under way, the next best began with the same turn and left the range again, 124 times in one
+        task (tuning seed 100, task 31). Without it the manoeuvre went on with the learner's carried state, and the
+        robot looped out of sensor 2's range and back (README, "Backing into sensor 2's range")."""
         self._plan, self._manoeuvre = None, None
         u, self._last_sensor2_command = self._last_sensor2_command, None
         if u is None or not np.any(u):
