@@ -325,46 +325,6 @@ def test_a_goal_beyond_the_explored_sensor2_readings_is_reached():
     assert done and np.all(np.abs(y - goal) < 0.005), y
 
 
-def test_sensor2_lost_by_a_manoeuvre_is_backed_into_and_the_command_ruled_out():
-    """sensor2_backoff: a sensor-2 manoeuvre whose command took sensor 2's readings out of range (the learned field
-    knows nothing of the range's edges) is abandoned: that command is undone at once, and no manoeuvre that begins
-    with it is chosen until the reading improves. A reading lost to dropout (the group held in sight) changes
-    nothing, and with the option off the manoeuvre goes on with the learner's carried state."""
-    field, A = linear_field()
-    box = np.array([[0.02, 0.02], [0.25, 0.25]])
-    goal, start = np.array([0.20, 0.21]), np.array([0.10, 0.10])
-
-    def lose_sensor2_after(c, steps, in_sight_after=False):
-        c.set_goal(goal, np.zeros(2))
-        y, driven = start.copy(), []
-        for _ in range(steps):
-            u = c.command(SPACE_SENSOR2, None, y, None, field, sensor2_box=box, sensor2_in_sight=True)[0]
-            driven.append(u)
-            y = y + A @ u * DT
-        manoeuvre, plan = c._manoeuvre, c._plan
-        u = c.command(SPACE_SENSOR2, None, y, None, field, sensor2_box=box, sensor2_measured=False,
-                      sensor2_in_sight=in_sight_after)[0]
-        return driven, manoeuvre, plan, u
-
-    c = SwitchingController(DT, tolerance=0.005)
-    driven, manoeuvre, plan, u = lose_sensor2_after(c, 3)
-    assert manoeuvre is not None and plan is not None and len(plan)           # a manoeuvre was under way
-    np.testing.assert_array_equal(u, -driven[-1])                             # the last command undone
-    assert c._plan is None
-    beginning_with_it = [i for i, seq in enumerate(c.manoeuvres) if np.any(seq)
-                         and np.array_equal(seq[np.flatnonzero(np.any(seq != 0, axis=1))[0]], driven[-1])]
-    assert beginning_with_it and set(beginning_with_it) <= c._avoid
-    u = c.command(SPACE_SENSOR2, None, start, None, field, sensor2_box=box, sensor2_in_sight=True)[0]
-    assert not np.array_equal(u, driven[-1])           # back in sight: a manoeuvre that begins otherwise
-    held = SwitchingController(DT, tolerance=0.005)
-    _, manoeuvre, plan, u = lose_sensor2_after(held, 3, in_sight_after=True)
-    np.testing.assert_array_equal(u, plan[0])                                  # dropout: the manoeuvre goes on
-    off = SwitchingController(DT, tolerance=0.005, sensor2_backoff=False)
-    _, manoeuvre, plan, u = lose_sensor2_after(off, 3)
-    np.testing.assert_array_equal(u, plan[0])
-    assert manoeuvre not in off._avoid
-
-
 def test_a_stalled_least_squares_step_gives_way_to_the_best_manoeuvre():
     """Sensor-2 phase with every manoeuvre that stays inside the explored readings ruled out (they made no progress):
     the one-step least-squares move is used while it makes progress; once it has not for stall_steps, the manoeuvre
@@ -524,21 +484,19 @@ def test_blind_reads_lost_readings_as_unknown_not_out_of_range():
 
 
 def test_a_lost_reading_stands_for_the_sensors_last_one_when_judging_blindness():
-    """sight: a sensor last out of range whose reading is lost does not make its group look in range (under
+    """sees_nothing: a sensor last out of range whose reading is lost does not make its group look in range (under
     dropout one such step ended a blind stretch and cut the watchdog's way back short); after hold_steps lost steps
     the reading is unknown again, and a sensor never read is unknown from the start."""
     c = SwitchingController(0.05, hold_steps=2)
     side_front_only = [math.inf, math.inf, 0.2, 0.14, math.inf]
-    assert c.sight(side_front_only) == (False, False)
+    assert c.sees_nothing(side_front_only)
     lost_rear = [math.inf, math.inf, 0.2, 0.14, math.nan]
     assert blind(lost_rear) is False                              # alone, the lost reading counts as unknown
-    assert c.sight(lost_rear) == (False, False)                   # held: side_rear is still out of range
-    assert c.sight(lost_rear) == (False, False)
-    assert c.sight(lost_rear) == (False, True)                    # a third lost step: unknown again
-    assert c.sight([math.inf, math.inf, 0.2, 0.14, 0.1]) == (False, True)
-    assert c.sight(lost_rear) == (False, True)                    # held in range now
-    assert SwitchingController(0.05).sight([math.inf, math.inf, 0.2, 0.14, math.nan]) == (False, True)
-    assert SwitchingController(0.05).sight([0.3, 0.4, 0.5, math.inf, 0.1]) == (True, False)
+    assert c.sees_nothing(lost_rear) and c.sees_nothing(lost_rear)  # held: side_rear is still out of range
+    assert not c.sees_nothing(lost_rear)                            # a third lost step: unknown again
+    assert not c.sees_nothing([math.inf, math.inf, 0.2, 0.14, 0.1])
+    assert not c.sees_nothing(lost_rear)                            # held in range now
+    assert not SwitchingController(0.05).sees_nothing([math.inf, math.inf, 0.2, 0.14, math.nan])
     with pytest.raises(ValueError):
         SwitchingController(0.05, hold_steps=-1)
 

@@ -36,15 +36,14 @@ with sensor 1 last in sight) is held to a tighter budget while other routes rema
 predicted length for the whole stretch, out and back, counted from where a replay ran out or from the wall's loss
 when none is under way (see _turn_back_now). A stretch begun in sensor 2's range (a sensor-2 manoeuvre left it) is
 not (turned back that soon, the robot left it again and again); the watchdog watches it with its margin alone
-(sensor2_loss_margin_only). Before that, in sensor-2 control, readings that go out of range are answered at once: the
-command that took them there is undone and the manoeuvre under way ruled out (sensor2_backoff). Durations are in
-steps and distances in readings or grid units: nothing here knows the robot's size.
+(sensor2_loss_margin_only). Durations are in steps and distances in readings or grid units: nothing here knows the
+robot's size.
 """
 from __future__ import annotations
 
 import math
 from itertools import product
-from typing import Optional, Tuple
+from typing import Optional
 
 import numpy as np
 from mm_msgs.msg import ManifoldState
@@ -54,20 +53,15 @@ SPACE_NONE, SPACE_SENSOR1 = ManifoldState.SPACE_NONE, ManifoldState.SPACE_SENSOR
 SPACE_VIRTUAL, SPACE_SENSOR2 = ManifoldState.SPACE_VIRTUAL_SENSOR1, ManifoldState.SPACE_SENSOR2
 
 
-def sight(readings) -> Tuple[bool, bool]:
-    """Whether sensor 1's group and sensor 2's see the wall, from the raw readings (sensor 1's three, then sensor 2's
-    two): a group sees it when none of its readings is out of range (+-inf) and at least one has a value; a lost
-    reading (NaN) is not evidence of being out of range."""
+def blind(readings) -> bool:
+    """Whether no sensor group sees the wall, from the raw readings (sensor 1's three, then sensor 2's two): a group
+    sees it when none of its readings is out of range (+-inf) and at least one has a value; a lost reading (NaN)
+    is not evidence of being out of range."""
     r = np.asarray(readings, dtype=float)
 
     def sees(group):
         return not np.any(np.isinf(group)) and bool(np.any(np.isfinite(group)))
-    return sees(r[:3]), sees(r[3:5])
-
-
-def blind(readings) -> bool:
-    """Whether no sensor group sees the wall (sight)."""
-    return not any(sight(readings))
+    return not (sees(r[:3]) or sees(r[3:5]))
 
 
 def _extend_runs(runs: list, u: np.ndarray, dt: float) -> None:
@@ -146,14 +140,9 @@ class SwitchingController:
     retrace the practised path only from the practised pose; 80 noisy `paper` tuning cells, the same models: share over
     2x 0.053 -> 0.040 at mean success 0.971 -> 0.970 (8: 0.043, 0.969), and with standing steps kept off the retrace's
     path (_remember) 0.051 -> 0.048 at 0.983 -> 0.981, both within a noisy run's spread; clean cells unchanged,
-    results/tune_wall_exit_settle_length.json, results/tune_wall_exit_settle.json), sensor2_backoff (sensor 2's
-    readings going out of range in sensor-2 control undo at once the command that took them there, and the manoeuvre
-    under way is ruled out until the reading improves: the learned field knows nothing of the range's edges, and the
-    manoeuvre had gone on with the learner's carried state, out of range and back again and again; 80 noisy `paper`
-    tuning cells, the same models: share over 2x 0.043 -> 0.029 (seeds 100-109 0.043 -> 0.027, 110-119 0.043 ->
-    0.031; lower for each robot on each half) at mean success 0.979 either way; results/tune_wall_sensor2_backoff.json),
-    hold_steps (sight: a lost reading stands for the sensor's last one for this many steps when judging whether a group
-    sees the wall, the learner's StateTracker default)."""
+    results/tune_wall_exit_settle_length.json, results/tune_wall_exit_settle.json), hold_steps (sees_nothing: a lost
+    reading stands for the sensor's last one for this many steps when judging whether a group sees the wall, the
+    learner's StateTracker default)."""
 
     def __init__(self, dt: float, max_wheel_speed: float = 6.0, horizon: int = 12,
                  speed_levels=(1.0, 0.4, 0.12, 0.0), travel_weight: float = 1e-3, tolerance: float = 0.01,
@@ -165,7 +154,7 @@ class SwitchingController:
                  blind_budget: float = 2.0, hold_steps: int = 3, replay_on_loss: bool = True,
                  budget_every_crossing: bool = True, virtual_on_carried_goal: bool = True,
                  sensor2_loss_margin_only: bool = True, replay_overrun_steps: int = 1, lost_wait_steps: int = 5,
-                 exit_settle_steps: int = 4, sensor2_backoff: bool = True):
+                 exit_settle_steps: int = 4):
         if dt <= 0 or max_wheel_speed <= 0 or tolerance <= 0 or horizon < 1:
             raise ValueError('dt, max_wheel_speed, tolerance and horizon must be positive')
         if travel_weight < 0 or manoeuvre_travel_weight < 0:
@@ -211,15 +200,12 @@ class SwitchingController:
         self.replay_overrun_steps = int(replay_overrun_steps)
         self.lost_wait_steps = int(lost_wait_steps)
         self.exit_settle_steps = int(exit_settle_steps)
-        self.sensor2_backoff = bool(sensor2_backoff)
         self._held: list = []               # each sensor's last reading and how many steps it has been lost since
         self._plan: Optional[np.ndarray] = None
         levels = sorted({s * max_wheel_speed * sign for s in speed_levels for sign in (-1, 1)})
         self.candidates = np.array(list(product(levels, levels)), dtype=float)
         self.manoeuvres, self.manoeuvre_travel = self._manoeuvres(turn_speed * max_wheel_speed,
                                                                   drive_speed * max_wheel_speed)
-        moving = np.any(self.manoeuvres != 0, axis=2)
-        self._first_commands = self.manoeuvres[np.arange(len(self.manoeuvres)), np.argmax(moving, axis=1)]
         self.goal_sensor2: Optional[np.ndarray] = None
         self.goal_coordinates: Optional[np.ndarray] = None
         self.waypoint: Optional[np.ndarray] = None
@@ -284,11 +270,6 @@ class SwitchingController:
         self.settled, self._settle_readings = 0, []
         self._plan = None
         self._s2_best, self._s2_stalled, self._chosen, self._avoid = np.inf, 0, set(), set()
-        self._manoeuvre: Optional[int] = None      # the sensor-2 manoeuvre under way (index), None: none
-        # sensor2_backoff: the command sensor-2 control drove when sensor 2 last saw the wall (None: none to undo),
-        # and whether the robot is out of its sight since (the loss already answered)
-        self._last_sensor2_command: Optional[np.ndarray] = None
-        self._sensor2_lost = False
         # Blind watchdog: the current stretch, its prediction and limit, the commands driven in it (to retrace), the
         # longest stretch of the episode as (steps, predicted steps), and why the task cannot go on (None: it can).
         self.blind_steps, self.predicted_blind, self.blind_limit = 0, 0, 0
@@ -354,7 +335,6 @@ class SwitchingController:
         if self._plan is not None and len(self._plan):
             u, self._plan = self._plan[0], self._plan[1:]
             return u
-        self._manoeuvre = None
         seqs = self.manoeuvres
         if box is not None:
             box = np.array([np.minimum.reduce([box[0], state, goal]), np.maximum.reduce([box[1], state, goal])])
@@ -380,7 +360,6 @@ class SwitchingController:
             return self.jacobian_step(field.jacobian(state[None])[0], goal - state)
         chosen = int(np.argmin(cost))
         self._chosen.add(chosen)
-        self._manoeuvre = chosen
         best = seqs[chosen]
         moving = np.flatnonzero(np.any(best != 0, axis=1))
         self._plan = best[1:moving[-1] + 1] if len(moving) else None
@@ -422,12 +401,12 @@ class SwitchingController:
         peak = np.max(np.abs(u))
         return u * (self.max_wheel_speed / peak) if peak > self.max_wheel_speed else u
 
-    def sight(self, readings) -> Tuple[bool, bool]:
-        """sight() of the readings (whether each group sees the wall) with each lost one (NaN) standing for the
-        sensor's last reading for up to hold_steps steps, as the learner's StateTracker bridges them. A sensor out of
-        range whose reading is lost stays out of range, so its group does not look in range on the strength of its
-        other sensor alone: under 5 % dropout one such step ended a blind stretch, the watchdog's way back then began
-        there, and the robot retraced only into the blind region ('lost'; README, "Never wander blind")."""
+    def sees_nothing(self, readings) -> bool:
+        """blind() of the readings with each lost one (NaN) standing for the sensor's last reading for up to
+        hold_steps steps, as the learner's StateTracker bridges them. A sensor out of range whose reading is lost stays
+        out of range, so its group does not look in range on the strength of its other sensor alone: under 5 %
+        dropout one such step ended a blind stretch, the watchdog's way back then began there, and the robot retraced
+        only into the blind region ('lost'; README, "Never wander blind")."""
         values = [float(v) for v in readings]
         if len(self._held) != len(values):
             self._held = [[math.nan, 0] for _ in values]
@@ -439,20 +418,18 @@ class SwitchingController:
                     values[i] = held[0]
             else:
                 held[0], held[1] = v, 0
-        return sight(values)
+        return blind(values)
 
     def command(self, space: int, coordinates: Optional[np.ndarray], sensor2: Optional[np.ndarray],
                 virtual_field, sensor2_field, sensor1_jacobian: Optional[np.ndarray] = None,
                 bounds: Optional[np.ndarray] = None, sensor2_box: Optional[np.ndarray] = None,
-                sensor2_measured: bool = True, blind: Optional[bool] = None,
-                sensor2_in_sight: Optional[bool] = None):
+                sensor2_measured: bool = True, blind: Optional[bool] = None):
         """(wheel command, reached, error in the active space) for the current state. `sensor1_jacobian` is the local
         Jacobian of the grid coordinates at the current reading (used while sensor 1 is in range);
         `sensor2_box` (2, 2) the range of sensor-2 readings seen during exploration; `sensor2_measured` False when
         the sensor-2 state is carried over a lost or out-of-range reading (it then never ends the task); `blind`
-        whether no sensor group sees the wall (default: the active space is neither sensor's); `sensor2_in_sight`
-        whether sensor 2's group does (sight(); None: not known, and sensor2_backoff never acts). When the task
-        cannot go on, `failure` says why and the command is a stop."""
+        whether no sensor group sees the wall (default: the active space is neither sensor's). When the task cannot
+        go on, `failure` says why and the command is a stop."""
         if self.goal_sensor2 is None:
             raise ValueError('no goal set')
         if blind is None:
@@ -474,16 +451,6 @@ class SwitchingController:
                 self._turn_back()
             if self.returning:
                 return self._retrace()
-        if space != SPACE_SENSOR2 or sensor2_in_sight is not False:
-            self._sensor2_lost = False
-        elif self.sensor2_backoff and not self._sensor2_lost:
-            self._sensor2_lost = True
-            u = self._back_into_sensor2()
-            if u is not None:
-                self._remember(u, blind)
-                if blind:
-                    _extend_runs(self._blind_runs, u, self.dt)
-                return u, False, float('nan')
         if (self.virtual_on_carried_goal and blind and space == SPACE_SENSOR2 and not sensor2_measured
                 and sensor2 is not None
                 and (self.settled or np.all(np.abs(np.asarray(sensor2) - self.goal_sensor2) < self.tolerance))):
@@ -499,27 +466,10 @@ class SwitchingController:
                 and self.retries < self.max_retries and self._turn_back_now(u)):
             self._turn_back()
             return self._retrace()
-        self._last_sensor2_command = (np.asarray(u, dtype=float).copy() if space == SPACE_SENSOR2 and sensor2_in_sight
-                                      else None)
         self._remember(u, blind)
         if blind:
             _extend_runs(self._blind_runs, u, self.dt)
         return u, reached, error
-
-    def _back_into_sensor2(self) -> Optional[np.ndarray]:
-        """sensor2_backoff: in sensor-2 control, sensor 2's readings have just gone out of range. The command driven
-        when it last saw the wall took it there (the learned field did not foresee it: it knows nothing of the range's
-        edges), so that command is undone (None: there is none), the manoeuvre under way is abandoned, and every
-        manoeuvre that begins with that command is ruled out until the reading improves (_watch_progress): ruling out
-        only the one under way, the next best began with the same turn and left the range again, 124 times in one
-        task (tuning seed 100, task 31). Without it the manoeuvre went on with the learner's carried state, and the
-        robot looped out of sensor 2's range and back (README, "Backing into sensor 2's range")."""
-        self._plan, self._manoeuvre = None, None
-        u, self._last_sensor2_command = self._last_sensor2_command, None
-        if u is None or not np.any(u):
-            return None
-        self._avoid |= set(np.flatnonzero(np.all(self._first_commands == u, axis=1)).tolist())
-        return -u
 
     # --- blind watchdog -----------------------------------------------------------------------------------------
     def _start_blind_stretch(self, coordinates: Optional[np.ndarray], virtual_field, bounds) -> None:

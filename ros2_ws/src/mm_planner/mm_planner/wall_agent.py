@@ -435,10 +435,8 @@ class WallAgent:
         space, coords, s2 = state.space, state.coordinates, state.sensor2_estimate
         J1 = m.sensor1_jacobian(coords) if space == ManifoldState.SPACE_SENSOR1 and coords is not None else None
         measured = bool(np.all(np.isfinite(np.asarray(state.readings, dtype=float)[3:5])))
-        sensor1_sees, sensor2_sees = c.sight(state.readings)
         u, done, error = c.command(space, coords, s2, m.virtual_field, m.sensor2_field, J1, m.virtual_bounds,
-                                   m.sensor2_box, sensor2_measured=measured, blind=not (sensor1_sees or sensor2_sees),
-                                   sensor2_in_sight=sensor2_sees)
+                                   m.sensor2_box, sensor2_measured=measured, blind=c.sees_nothing(state.readings))
         target = c.goal_sensor2 if space == ManifoldState.SPACE_SENSOR2 else (c.target if c.target is not None else ())
         target = tuple(float(v) for v in target)
         if done:
