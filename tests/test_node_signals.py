@@ -98,8 +98,8 @@ def test_sigusr1_writes_every_threads_stack_to_the_log_and_the_node_goes_on(tmp_
     """node_utils.dump_stacks_on_request: what ProcessGraph.stop sends a node that ignored SIGINT, before SIGTERM.
     The kernel hands a signal sent to the process to any thread that does not block it, which may be one of the DDS
     middleware's: faulthandler then heads every Python thread "Thread 0x..." and none "Current thread 0x..." (which
-    this test waited for, and so failed once in a fresh-clone run). The main thread's stack is in the dump either
-    way."""
+    this test waited for: the likeliest cause of its one failure in a fresh-clone run). The main thread's stack is in
+    the dump either way."""
     with ProcessGraph(log_dir=tmp_path) as graph:
         node = graph.start('mm_sim', 'wheeled_sim', {'republish_period': 0.2})
         wait_for(lambda: 'wheeled_sim ready' in graph.log_tail(node), 30.0, message='wheeled_sim ready')
