@@ -9,6 +9,7 @@ from mm_bringup.bench.wall_task import robot_variant
 from mm_bringup.wall_experiment import (PAPER_GOAL_POSES, PAPER_START, explore, group_range, layout_robot,
                                         model_message, oracle_path_length, random_task, run_episode,
                                         sensor2_goal_reading, success)
+from mm_common.learned_fields import PolynomialField
 from mm_manifold.jacobian import PolynomialJacobianField
 from mm_manifold.sensor_manifold import SensorManifoldModel, find_excursions, group_in_range
 from mm_common.wheeled_sensors import SENSOR1, SENSOR2
@@ -258,7 +259,8 @@ def linear_field(seed=0):
     rng = np.random.default_rng(seed)
     Y, U = rng.uniform(0.05, 0.25, (200, 2)), rng.uniform(-6.0, 6.0, (200, 2))
     A = np.array([[0.01, 0.012], [0.012, 0.01]])
-    return PolynomialJacobianField(1).fit(Y, U, U @ A.T), A
+    f = PolynomialJacobianField(1).fit(Y, U, U @ A.T)
+    return PolynomialField(f.degree, f.theta_, f.center_, f.scale_), A     # as WallModel gives it to the controller
 
 
 def steep_field():
@@ -323,6 +325,39 @@ def test_a_goal_beyond_the_explored_sensor2_readings_is_reached():
             break
         y = y + A @ u * DT
     assert done and np.all(np.abs(y - goal) < 0.005), y
+
+
+def test_sensor2_control_corrects_a_wrong_field_from_its_own_steps():
+    """A learned sensor-2 field that mispredicts (here its rows swapped: it takes the front reading for the rear)
+    sends every manoeuvre the wrong way and the goal is never reached. Fitted to the episode's own measured steps,
+    the correction (sensor2_adapt_steps) makes the field predict what the readings do, and the goal is reached."""
+    field, A = linear_field()
+    theta = np.zeros_like(field.theta)
+    theta[0] = A[::-1]                                   # degree-1 features: the constant term is J itself
+    wrong = PolynomialField(field.degree, theta, field.center, field.scale)
+    goal, start = np.array([0.10, 0.12]), np.array([0.15, 0.16])
+    for adapt_steps in (0, 20):
+        c = SwitchingController(DT, tolerance=0.005, sensor2_adapt_steps=adapt_steps)
+        c.set_goal(goal, np.zeros(2))
+        y, done = start.copy(), False
+        for _ in range(600):
+            u, done, _ = c.command(SPACE_SENSOR2, None, y, None, wrong)
+            if done:
+                break
+            y = y + A @ u * DT
+        assert done == bool(adapt_steps), (adapt_steps, y)
+    assert np.all(np.abs(y - goal) < 0.005)
+    np.testing.assert_allclose(c._adapted_field.jacobian(y[None])[0], A, atol=1e-3)   # the plant's own Jacobian
+    # Steps with sensor 2 carried over a lost reading (not measured) teach nothing: no correction from them.
+    c = SwitchingController(DT, tolerance=0.005, sensor2_adapt_steps=5)
+    c.set_goal(goal, np.zeros(2))
+    for _ in range(30):
+        u, _, _ = c.command(SPACE_SENSOR2, None, start, None, wrong, sensor2_measured=False)
+        start = start + A @ u * DT
+    assert c._adapted_field is None
+    for bad in (dict(sensor2_adapt_steps=-1), dict(sensor2_adapt_ridge=0.0)):
+        with pytest.raises(ValueError, match='sensor2_adapt'):
+            SwitchingController(DT, **bad)
 
 
 def test_a_stalled_least_squares_step_gives_way_to_the_best_manoeuvre():
