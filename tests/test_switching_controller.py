@@ -355,6 +355,15 @@ def test_sensor2_control_corrects_a_wrong_field_from_its_own_steps():
         u, _, _ = c.command(SPACE_SENSOR2, None, start, None, wrong, sensor2_measured=False)
         start = start + A @ u * DT
     assert c._adapted_field is None
+    # A field whose rates overflow (a hostile model) teaches nothing either: no NaN in the normal equations.
+    huge = PolynomialField(field.degree, np.full_like(field.theta, 1e308), field.center, field.scale)
+    c = SwitchingController(DT, tolerance=0.005, sensor2_adapt_steps=1)
+    c.set_goal(goal, np.zeros(2))
+    with np.errstate(over='ignore', invalid='ignore'):
+        for y in (np.array([0.15, 0.16]), np.array([0.151, 0.16])):
+            c._sensor2_step = (np.array([0.15, 0.16]), np.array([1.0, 1.0]))
+            c._adapt_sensor2(huge, y)
+    assert c._adapt_normal is None and c._adapted_field is None
     for bad in (dict(sensor2_adapt_steps=-1), dict(sensor2_adapt_ridge=0.0)):
         with pytest.raises(ValueError, match='sensor2_adapt'):
             SwitchingController(DT, **bad)

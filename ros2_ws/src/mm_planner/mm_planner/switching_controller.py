@@ -429,6 +429,8 @@ class SwitchingController:
         p = polynomial_features(y[None], field.degree, field.center, field.scale)[0]
         x = (p[:, None] * u[None, :]).ravel()
         residual = (reading - y) / self.dt - field.rates(y[None], u[None])[0]
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(residual))):
+            return                                       # a field that overflows here would poison every refit after
         if self._adapt_normal is None:
             self._adapt_normal = (np.zeros((len(x), len(x))), np.zeros((len(x), len(residual))))
         A, b = self._adapt_normal
