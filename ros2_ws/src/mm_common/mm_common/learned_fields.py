@@ -1,8 +1,8 @@
-"""Evaluation of the wheeled robot's learned model, shared by the learner (mm_manifold) and the controller
-(mm_planner), which meet through the mm_msgs/SensorManifoldModel message: the polynomial basis of the Jacobian fields,
-the blend of local region Jacobians and the route choice toward a sensor-2 goal (with the route's practised commands).
-One implementation on both sides, so what the controller evaluates from the message is what the learner fitted. Pure
-numpy, no ROS.
+"""Evaluation of the wheeled robot's learned model, shared by the learner (mm_manifold) and the controller (mm_planner),
+which meet through the mm_msgs/SensorManifoldModel message: the polynomial basis of the Jacobian fields, the layout
+of their least-squares fit (fitted by the learner, corrected online by the controller), the blend of local region
+Jacobians and the route choice toward a sensor-2 goal (with the route's practised commands). One implementation on
+both sides, so what the controller evaluates from the message is what the learner fitted. Pure numpy, no ROS.
 """
 from __future__ import annotations
 
@@ -44,6 +44,17 @@ def polynomial_features(Y: np.ndarray, degree: int, center: np.ndarray, scale: n
     for f, combo in enumerate(combos):
         P[:, f] = _product(Z, combo)
     return P
+
+
+def jacobian_design(P: np.ndarray, U: np.ndarray) -> np.ndarray:
+    """(n, f * du) rows of J(y) u = dy/dt as a linear least-squares problem in theta, from the features P (n, f) of y
+    and the commands U (n, du); theta_from_solution reads its solution back in this order."""
+    return (P[:, :, None] * U[:, None, :]).reshape(len(P), -1)
+
+
+def theta_from_solution(coef: np.ndarray, n_features: int, n_inputs: int) -> np.ndarray:
+    """A (f * du, dy) solution of the jacobian_design problem as a field's theta (f, dy, du)."""
+    return coef.reshape(n_features, n_inputs, -1).transpose(0, 2, 1)
 
 
 class PolynomialField:

@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import Optional, Tuple
 
 import numpy as np
-from mm_common.learned_fields import blend_jacobians, polynomial_features
+from mm_common.learned_fields import blend_jacobians, jacobian_design, polynomial_features, theta_from_solution
 from scipy.spatial import cKDTree
 
 
@@ -103,12 +103,12 @@ class PolynomialJacobianField:
         self.center_ = Y.mean(axis=0)
         self.scale_ = Y.std(axis=0) + 1e-9
         P = polynomial_features(Y, self.degree, self.center_, self.scale_)     # (n, f)
-        X = (P[:, :, None] * U[:, None, :]).reshape(len(Y), -1)               # (n, f*du)
+        X = jacobian_design(P, U)                                             # (n, f*du)
         w = np.ones(len(Y)) if sample_weight is None else np.asarray(sample_weight, dtype=float)
         XtW = X.T * w
         A = XtW @ X + self.ridge * len(Y) * np.eye(X.shape[1])
         coef = np.linalg.solve(A, XtW @ Ydot)                                  # (f*du, dy)
-        self.theta_ = coef.reshape(P.shape[1], U.shape[1], -1).transpose(0, 2, 1)   # (f, dy, du)
+        self.theta_ = theta_from_solution(coef, P.shape[1], U.shape[1])       # (f, dy, du)
         self.rms_ = float(np.sqrt(np.mean((Ydot - self.rates(Y, U)) ** 2)))
         return self
 

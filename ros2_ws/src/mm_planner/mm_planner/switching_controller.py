@@ -47,7 +47,7 @@ from itertools import product
 from typing import Optional
 
 import numpy as np
-from mm_common.learned_fields import PolynomialField, polynomial_features
+from mm_common.learned_fields import PolynomialField, jacobian_design, polynomial_features, theta_from_solution
 from mm_msgs.msg import ManifoldState
 
 # The active spaces are the state message's constants (their one home).
@@ -426,8 +426,8 @@ class SwitchingController:
         y, u = last
         if not np.any(u):
             return                                       # standing still says nothing about J
-        p = polynomial_features(y[None], field.degree, field.center, field.scale)[0]
-        x = (p[:, None] * u[None, :]).ravel()
+        p = polynomial_features(y[None], field.degree, field.center, field.scale)
+        x = jacobian_design(p, u[None])[0]
         residual = (reading - y) / self.dt - field.rates(y[None], u[None])[0]
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(residual))):
             return                                       # a field that overflows here would poison every refit after
@@ -441,7 +441,7 @@ class SwitchingController:
             return
         ridge = self.sensor2_adapt_ridge * np.trace(A) / len(A)
         coef = np.linalg.solve(A + ridge * np.eye(len(A)), b)                  # (f * du, dy)
-        correction = coef.reshape(len(p), len(u), -1).transpose(0, 2, 1)       # (f, dy, du), as the field's theta
+        correction = theta_from_solution(coef, p.shape[1], len(u))             # (f, dy, du), as the field's theta
         if field.correction is not None:
             correction = correction + field.correction
         self._adapted_field = PolynomialField(field.degree, field.theta, field.center, field.scale, correction)
