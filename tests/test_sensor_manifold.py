@@ -697,6 +697,29 @@ def test_state_tracker_ends_a_sensor2_continuation_that_runs_away(model, robot):
         assert (s2 is not None and space == SPACE_SENSOR2) == continued
 
 
+def test_state_tracker_takes_readings_outside_the_grid_as_they_are(noisy_model):
+    """With noisy readings the tracker blends each sensor-1 measurement with the learned one-step prediction; outside
+    the grid (where exploration never went) that prediction is a field extrapolated past its data, so there the
+    measurement is taken alone (measure_outside_grid), and inside the grid the blend stays as it was."""
+    model = noisy_model
+    assert model.sensor1_gain_ < 1 and model.measure_outside_grid
+    far_side = np.array([-1.5, (model.grid_cols - 1) / 2])                   # beyond the grid's first row
+    centre = np.array([(model.grid_rows - 1) / 2, (model.grid_cols - 1) / 2])
+    for target, outside in ((far_side, True), (centre + 0.5, False)):
+        reading = model.grid_.inverse_transform(target[None])[0]
+        measured = model.grid_.transform(reading[None])[0]
+        assert np.all(np.isfinite(reading)) and np.all(reading > 0)
+        assert bool(np.any(measured < 0)) == outside
+        start = np.r_[model.grid_.inverse_transform(centre[None])[0], math.inf, math.inf]
+        for measure in (True, False):
+            m = copy.copy(model)
+            m.measure_outside_grid = measure
+            tracker = StateTracker(m)
+            tracker.update(start, None)
+            _, c, _, _ = tracker.update(np.r_[reading, math.inf, math.inf], np.array([1.0, 1.0]))
+            assert np.allclose(c, measured) == (outside and measure), (target, measure, c, measured)
+
+
 def test_state_tracker_bridges_lost_readings_then_gives_up(model, robot):
     tracker = StateTracker(model, hold_steps=2)
     r = robot.read((0.0, 0.6, -math.pi / 2), noisy=False)

@@ -114,7 +114,9 @@ class SensorManifoldModel:
     when the held-out sensor-2 error of VirtualSensorSpace.validate is at most heldout_bound x the span of the
     sensor-2 readings explored; chosen by mm_bringup.tune_wall), learn_measurement_gain (False: sensor1_gain_ = 1,
     the readings as they are), rate_steps (consecutive steps each sensor-1 rate spans in the Jacobian fit,
-    _sensor1_rates; None: from the reading noise, 1 on clean readings).
+    _sensor1_rates; None: from the reading noise, 1 on clean readings), measure_outside_grid (the state tracker takes
+    a sensor-1 reading whose grid coordinates fall outside the grid as it is, without blending in the learned
+    prediction: StateTracker; False: blended like any other).
     Learned: dimension_, grid_, field1_ (grid coords), regions1_, field2_ (sensor-2 readings), sensor1_gain_ (the
     state tracker's measurement gain for sensor 1: measurement_gain), rate_steps_ (the steps a sensor-1 rate spanned),
     sensor2_noise_ (std
@@ -124,7 +126,7 @@ class SensorManifoldModel:
     def __init__(self, dt: float, grid_rows: int = 10, grid_cols: int = 10, jacobian_degree: int = 2,
                  virtual_prior_weight: float = 1.0, route_travel_weight: float = 5e-3, validation_folds: int = 3,
                  heldout_bound: float = 0.5, learn_measurement_gain: bool = True, rate_steps: Optional[int] = None,
-                 random_state: Optional[int] = 0):
+                 measure_outside_grid: bool = True, random_state: Optional[int] = 0):
         if validation_folds < 2 or not heldout_bound > 0:
             raise ValueError('validation_folds >= 2 and heldout_bound > 0 are required')
         if rate_steps is not None and not _valid_rate_steps(rate_steps):
@@ -134,6 +136,7 @@ class SensorManifoldModel:
         self.validation_folds = validation_folds
         self.heldout_bound = heldout_bound
         self.learn_measurement_gain = learn_measurement_gain
+        self.measure_outside_grid = bool(measure_outside_grid)
         self.dt = dt
         self.grid_rows, self.grid_cols = grid_rows, grid_cols
         self.jacobian_degree = jacobian_degree
@@ -496,7 +499,12 @@ class StateTracker:
     a lost reading, bridged with its last value, contributes no measurement, only the prediction). Sensor 1 takes
     the gain the model learned from its readings (SensorManifoldModel.sensor1_gain_: 1 on clean readings, where
     blending cost precision, about 0.5 with the benchmark's noise), sensor 2 its readings as they are (1), unless
-    `measurement_gain` is given for both.
+    `measurement_gain` is given for both. A sensor-1 reading whose coordinates fall outside the grid (where
+    exploration never took the robot: random tasks start up to 1.1 m from the wall, and a directed exploration may
+    not have gone back there since its start) is taken as it is when the model says so (measure_outside_grid): the
+    prediction there comes from a field extrapolated past its data, and blended in, it pulled the estimate several
+    grid units off within a few steps, so that the approach to the exit drove away from it (README, "Starts beyond
+    the explored range").
     """
 
     def __init__(self, model: SensorManifoldModel, hold_steps: int = 3, sensor2_hold_steps: int = 20,
@@ -547,7 +555,9 @@ class StateTracker:
             measured = self.model.grid_.transform(r[list(SENSOR1)][None])[0]
             if self.coordinates is not None and self.virtual_steps == 0 and command is not None:
                 predicted = self.model.virtual_.step(self.coordinates, command)
-                gain = 0.0 if lost[list(SENSOR1)].any() else k1
+                box = self.model.grid_box()
+                outside = self.model.measure_outside_grid and bool(np.any((measured < box[0]) | (measured > box[1])))
+                gain = 0.0 if lost[list(SENSOR1)].any() else 1.0 if outside else k1
                 measured = predicted + gain * (measured - predicted)
             self.coordinates = measured
             self.virtual_steps = 0
