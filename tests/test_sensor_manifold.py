@@ -529,9 +529,20 @@ def test_save_load_round_trip(model, tmp_path, robot):
     with np.load(path, allow_pickle=False) as data:               # saved before the span was learned: one step
         arrays = {k: data[k] for k in data.files}
     meta = json.loads(str(arrays['meta']))
-    del meta['rate_steps']
+    del meta['rate_steps'], meta['measure_outside_grid']
     np.savez(path, **{**arrays, 'meta': np.array(json.dumps(meta))})
     assert SensorManifoldModel.load(path).rate_steps_ == 1
+    # how the tracker takes readings outside the grid travels with the model (files from before it: blended)
+    assert not SensorManifoldModel.load(path).measure_outside_grid
+    blended = copy.copy(model)
+    for measure in (False, True):
+        blended.measure_outside_grid = measure
+        blended.save(path)
+        assert SensorManifoldModel.load(path).measure_outside_grid is measure
+    meta['measure_outside_grid'] = 'yes'
+    np.savez(path, **{**arrays, 'meta': np.array(json.dumps(meta))})
+    with pytest.raises(ValueError, match='measure_outside_grid'):
+        SensorManifoldModel.load(path)
 
 
 def test_load_rejects_missing_corrupt_and_foreign_files(model, tmp_path):

@@ -299,7 +299,7 @@ class SensorManifoldModel:
                 'virtual_prior_weight': self.virtual_prior_weight,
                 'route_travel_weight': self.route_travel_weight, 'dimension': int(self.dimension_),
                 'sensor2_noise': [float(v) for v in self.sensor2_noise_], 'sensor1_gain': self.sensor1_gain_,
-                'rate_steps': self.rate_steps_,
+                'rate_steps': self.rate_steps_, 'measure_outside_grid': self.measure_outside_grid,
                 'grid_residual': self.grid_.residual_, 'n_samples': self.n_samples_,
                 'n_excursions': self.n_excursions_,
                 'reentry_rms_before': self.virtual_.reentry_rms_before_,
@@ -416,6 +416,10 @@ class SensorManifoldModel:
         if not _valid_rate_steps(rate_steps):
             raise ValueError(f'rate_steps {rate_steps!r} must be an integer in [1, {MAX_RATE_STEPS}]')
         model.rate_steps_ = rate_steps
+        measure = meta.get('measure_outside_grid', False)   # files saved before it existed: blended everywhere
+        if not isinstance(measure, bool):
+            raise ValueError(f'measure_outside_grid {measure!r} must be true or false')
+        model.measure_outside_grid = measure
         model.n_samples_, model.n_excursions_ = meta['n_samples'], meta['n_excursions']
         model.sensor2_box_ = arrays['sensor2_box']
         grid = ElasticGrid(rows, cols)
