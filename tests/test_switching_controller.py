@@ -795,9 +795,10 @@ def test_the_budget_holds_every_crossing_not_only_one_past_a_missed_replay():
     steps, predicted = c.longest_blind
     assert not c._practised_stretch and 1 < predicted < 20
     assert steps <= 2 * predicted and c.watchdog_trips == 1
-    # Begun where sensor 2 last saw the wall (a sensor-2 manoeuvre left its range) it is no crossing: the budget does
-    # not hold it (the watchdog's margin does, sensor2_loss_margin_only: off here to show the budget alone).
-    in_sensor2 = SwitchingController(DT, max_wheel_speed=6.0, max_retries=3, sensor2_loss_margin_only=False)
+    # Begun where sensor 2 last saw the wall (a sensor-2 manoeuvre left its range) it is no crossing:
+    # budget_every_crossing does not hold it (budget_sensor2_loss does, off here; the next test).
+    in_sensor2 = SwitchingController(DT, max_wheel_speed=6.0, max_retries=3, sensor2_loss_margin_only=False,
+                                     budget_sensor2_loss=False)
     in_sensor2.set_goal(np.array([0.17, 0.17]), goal, exit_point)
     in_sensor2.command(SPACE_SENSOR2, None, np.array([0.1, 0.1]), field, field)
     for _ in range(2 * predicted + 2):
@@ -808,6 +809,41 @@ def test_the_budget_holds_every_crossing_not_only_one_past_a_missed_replay():
     out_and_back(replay_only, field, exit_point)
     assert replay_only.longest_blind[1] == predicted
     assert replay_only.longest_blind[0] > replay_only.blind_limit > 2 * predicted
+
+
+def test_a_loss_in_sensor2_range_is_held_to_the_budget():
+    """With budget_sensor2_loss (the default) a stretch begun where sensor 2 last saw the wall is held to blind_budget
+    times its predicted length, out and back, as a crossing is: the retrace undoes the blind commands and then the one
+    that left sensor 2's range, and the manoeuvre under way when the range was lost is dropped (the retrace undid it),
+    so sensor-2 control chooses afresh once back. Off, only the watchdog's margin holds the stretch
+    (sensor2_loss_margin_only; 40 steps here, beyond twice the prediction), and out and back it runs past twice that."""
+    field, sensor2_field = steep_field(), linear_field()[0]
+    exit_point, reading = np.array([4.0, 4.0]), np.array([0.1, 0.1])
+
+    def lose_sensor2(c):
+        """Sensor-2 control's first command, then blind until the retrace has undone it; (out, back) commands."""
+        c.set_goal(np.array([0.17, 0.17]), exit_point + 0.6, exit_point)
+        left = c.command(SPACE_SENSOR2, None, reading, field, sensor2_field)[0]
+        assert np.any(left) and c._plan is not None and len(c._plan)          # a manoeuvre under way
+        out, back = [], []
+        for _ in range(200):
+            u = c.command(SPACE_VIRTUAL, exit_point, None, field, None, blind=True)[0]
+            (back if c.returning else out).append(u)
+            if c.returning and np.allclose(u / np.max(np.abs(u)), -left / np.max(np.abs(left))):
+                return out, back                     # the command that left the range, undone
+        raise AssertionError("the retrace did not undo the command that left sensor 2's range")
+    margin = 40
+    held = SwitchingController(DT, max_wheel_speed=6.0, max_retries=3, blind_margin_steps=margin)
+    out, back = lose_sensor2(held)
+    assert held._plan is None and held.watchdog_trips == 1
+    held.command(SPACE_SENSOR2, None, reading, field, sensor2_field)          # back in sensor 2's range
+    steps, predicted = held.longest_blind
+    assert not held.returning and 1 < predicted < 20 and steps == len(out) + len(back) <= 2 * predicted
+    free = SwitchingController(DT, max_wheel_speed=6.0, max_retries=3, blind_margin_steps=margin,
+                               budget_sensor2_loss=False)
+    free_out, _ = lose_sensor2(free)
+    assert free.longest_blind[1] == predicted and len(free_out) == margin
+    assert free.longest_blind[0] > 2 * predicted
 
 
 def test_a_carried_sensor2_goal_out_of_range_drives_on_by_the_virtual_space():
@@ -1042,7 +1078,8 @@ def test_a_stretch_begun_in_sensor2_range_is_watched_with_the_margin_alone():
     """A sensor-2 manoeuvre that leaves sensor 2's range starts a stretch with no crossing ahead: the plan's rollout
     to the route's goal (here beyond blind_prediction_cap) says nothing about the way back, and its limit
     (1.5 x 100 + 20 steps) let the robot wander blind for 170 steps. The watchdog's margin alone holds it
-    (sensor2_loss_margin_only, the default); a crossing begun from sensor 1 keeps the rollout's limit."""
+    (sensor2_loss_margin_only, the default; budget_sensor2_loss off here to show that limit alone); a crossing begun
+    from sensor 1 keeps the rollout's limit."""
     field = steep_field()
     here, far_goal = np.array([4.0, 4.0]), np.array([100.0, 100.0])
 
@@ -1061,7 +1098,7 @@ def test_a_stretch_begun_in_sensor2_range_is_watched_with_the_margin_alone():
     margin_only = SwitchingController(DT, max_wheel_speed=6.0)
     assert blind_steps_until_return(margin_only, True) == margin_only.blind_margin_steps + 1
     assert margin_only.predicted_blind == margin_only.blind_prediction_cap       # the rollout stays the stretch's
-    off = SwitchingController(DT, max_wheel_speed=6.0, sensor2_loss_margin_only=False)
+    off = SwitchingController(DT, max_wheel_speed=6.0, sensor2_loss_margin_only=False, budget_sensor2_loss=False)
     assert blind_steps_until_return(off, True) == off.blind_limit + 1 == 171
     crossing = SwitchingController(DT, max_wheel_speed=6.0, blind_budget=0)
     assert blind_steps_until_return(crossing, False) == 171

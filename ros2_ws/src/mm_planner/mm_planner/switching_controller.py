@@ -35,10 +35,10 @@ its end, it stands still for `lost_wait_steps` fresh readings before it fails "l
 practised route, or fails with the reason once `max_retries` routes were tried. A crossing (a stretch begun
 with sensor 1 last in sight) is held to a tighter budget while other routes remain: `blind_budget` times its
 predicted length for the whole stretch, out and back, counted from where a replay ran out or from the wall's loss
-when none is under way (see _turn_back_now). A stretch begun in sensor 2's range (a sensor-2 manoeuvre left it) is
-not (turned back that soon, the robot left it again and again); the watchdog watches it with its margin alone
-(sensor2_loss_margin_only). Durations are in steps and distances in readings or grid units: nothing here knows the
-robot's size.
+when none is under way (see _turn_back_now). So is a stretch begun in sensor 2's range (a sensor-2 manoeuvre left it;
+budget_sensor2_loss): the retrace undoes the blind commands and the one that left the range, and sensor-2 control
+chooses afresh from there; the watchdog's limit for it is its margin alone (sensor2_loss_margin_only). Durations are in
+steps and distances in readings or grid units: nothing here knows the robot's size.
 """
 from __future__ import annotations
 
@@ -152,7 +152,13 @@ class SwitchingController:
     its predictions of the manoeuvres are wrong: see _adapt_sensor2. On against off by `mm_bringup.tune_wall
     --controller --rule blind` on the same tuning models: 80 noisy `paper` cells mean success 0.978 -> 0.992, share over
     2x 0.043 -> 0.042, 40 clean cells 1.0 either way, results/tune_wall_sensor2_adapt.json; 20 steps and the ridge were
-    set by hand on one traced tuning model, seed 113, not tuned)."""
+    set by hand on one traced tuning model, seed 113, not tuned), budget_sensor2_loss (a stretch begun where sensor 2
+    last saw the wall is held to blind_budget times its predicted length, out and back, as a crossing is, and the
+    manoeuvre under way is dropped when the robot turns back; off, such a stretch ran to the watchdog's margin, 20
+    steps, and as far back. On against off by `mm_bringup.tune_wall --controller --rule blind` on the same tuning
+    models: 80 noisy `paper` cells share over 2x 0.041 -> 0.017 at mean success 0.993 -> 0.992, 40 clean cells 0.004 ->
+    0 at 1.0, results/tune_wall_budget_sensor2_loss.json; tried in the thirteenth session, before the sensor-2 field
+    was corrected online, it cost 1.3 points of noisy success)."""
 
     def __init__(self, dt: float, max_wheel_speed: float = 6.0, horizon: int = 12,
                  speed_levels=(1.0, 0.4, 0.12, 0.0), travel_weight: float = 1e-3, tolerance: float = 0.01,
@@ -164,7 +170,8 @@ class SwitchingController:
                  blind_budget: float = 2.0, hold_steps: int = 3, replay_on_loss: bool = True,
                  budget_every_crossing: bool = True, virtual_on_carried_goal: bool = True,
                  sensor2_loss_margin_only: bool = True, replay_overrun_steps: int = 1, lost_wait_steps: int = 5,
-                 exit_settle_steps: int = 4, sensor2_adapt_steps: int = 20, sensor2_adapt_ridge: float = 1e-2):
+                 exit_settle_steps: int = 4, sensor2_adapt_steps: int = 20, sensor2_adapt_ridge: float = 1e-2,
+                 budget_sensor2_loss: bool = True):
         if dt <= 0 or max_wheel_speed <= 0 or tolerance <= 0 or horizon < 1:
             raise ValueError('dt, max_wheel_speed, tolerance and horizon must be positive')
         if travel_weight < 0 or manoeuvre_travel_weight < 0:
@@ -214,6 +221,7 @@ class SwitchingController:
         self.exit_settle_steps = int(exit_settle_steps)
         self.sensor2_adapt_steps = int(sensor2_adapt_steps)
         self.sensor2_adapt_ridge = float(sensor2_adapt_ridge)
+        self.budget_sensor2_loss = bool(budget_sensor2_loss)
         self._held: list = []               # each sensor's last reading and how many steps it has been lost since
         self._plan: Optional[np.ndarray] = None
         levels = sorted({s * max_wheel_speed * sign for s in speed_levels for sign in (-1, 1)})
@@ -525,7 +533,8 @@ class SwitchingController:
         u, reached, error = self._command(space, coordinates, sensor2, virtual_field, sensor2_field, sensor1_jacobian,
                                           bounds, sensor2_box, sensor2_measured)
         if (blind and self.blind_budget and not replaying and (
-                self._practised_stretch or (self.budget_every_crossing and not self._from_sensor2))
+                self._practised_stretch
+                or (self.budget_sensor2_loss if self._from_sensor2 else self.budget_every_crossing))
                 and self.retries < self.max_retries and self._turn_back_now(u)):
             self._turn_back()
             return self._retrace()
@@ -578,6 +587,7 @@ class SwitchingController:
 
     def _turn_back(self) -> None:
         self.returning = True
+        self._plan = None               # the retrace undoes the sensor-2 manoeuvre under way, if any
         self.watchdog_trips += 1
         self._lost_waits = 0
 
