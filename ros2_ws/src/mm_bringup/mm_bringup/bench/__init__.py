@@ -5,6 +5,7 @@ import json
 import os
 import subprocess
 from pathlib import Path
+from typing import Optional
 
 PARTS = ('graph_bench', 'wall_task', 'arm_task', 'arm_reach')
 
@@ -18,14 +19,18 @@ def write_json(path: Path, data: dict, sort_keys: bool = True) -> None:
     os.replace(tmp, path)
 
 
-def code_version() -> dict:
-    """The commit the figures belong to, and whether the tracked files differed from it ('' when not in git)."""
-    here = Path(__file__).resolve().parent
+def code_version(where: Optional[Path] = None) -> dict:
+    """The commit the figures belong to (of the repository at `where`, this package's by default), and whether the
+    tracked files differed from it ('' when not in git). The
+    benchmarks' own output, `results/`, does not count: `make bench` rewrites it part by part, and a later part (or a
+    re-run into a fresh results file) would otherwise call the committed code dirty."""
+    here = Path(where) if where is not None else Path(__file__).resolve().parent
     try:
         commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True, text=True, cwd=here,
                                 timeout=10).stdout.strip()
-        dirty = subprocess.run(['git', 'status', '--porcelain', '--untracked-files=no'], capture_output=True,
-                               text=True, cwd=here, timeout=10).stdout.strip() != ''
+        dirty = subprocess.run(['git', 'status', '--porcelain', '--untracked-files=no', '--', ':(top)',
+                                ':(top,exclude)results'], capture_output=True, text=True, cwd=here,
+                               timeout=10).stdout.strip() != ''
     except (OSError, subprocess.SubprocessError):
         commit, dirty = '', False
     return {'git_commit': commit, 'git_dirty': dirty}
