@@ -21,9 +21,9 @@ def write_json(path: Path, data: dict, sort_keys: bool = True) -> None:
 
 def code_version(where: Optional[Path] = None) -> dict:
     """The commit the figures belong to (of the repository at `where`, this package's by default), and whether the
-    tracked files differed from it ('' when not in git). The
-    benchmarks' own output, `results/`, does not count: `make bench` rewrites it part by part, and a later part (or a
-    re-run into a fresh results file) would otherwise call the committed code dirty."""
+    tracked files differed from it ('' when not in git). The benchmarks' own output, `results/`, does not count: `make
+    bench` rewrites it part by part, and a later part (or a re-run into a fresh results file) would otherwise call the
+    committed code dirty."""
     here = Path(where) if where is not None else Path(__file__).resolve().parent
     try:
         commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True, text=True, cwd=here,
