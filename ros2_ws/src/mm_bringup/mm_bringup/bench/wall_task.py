@@ -197,7 +197,7 @@ def merged_cells(previous: Path, fresh: list) -> Tuple[list, int]:
 
 def run_matrix(cells, n_tasks: int, workers: int, on_cell=None, tolerance: float = TOLERANCE) -> list:
     """run_cell on each cell, `workers` at a time; each result says which code measured it (`measured_at`: the
-    commit, '-dirty' when tracked files differed from it)."""
+    commit, '-dirty' when tracked files outside results/ differed from it)."""
     version = code_version()
     measured_at = version['git_commit'] + ('-dirty' if version['git_dirty'] else '')
     results = []
