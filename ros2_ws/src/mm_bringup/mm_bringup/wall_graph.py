@@ -193,9 +193,7 @@ class WallGraph:
                                 LOOP_START_TIMEOUT, 'the lockstep loop to start')
                 break
             except TimeoutError as stall:
-                # The nodes' own words on the stall (unmatched peers, a state waiting for its command), shown where
-                # the run is watched: their log files may be gone with the work directory (a CI run's tmp).
-                logs = '\n'.join(f'--- {n.label} (last lines) ---\n{self.graph.log_tail(n, 15)}' for n in self.nodes)
+                logs = self.log_tails()
                 if attempt + 1 == self.loop_start_attempts:
                     raise TimeoutError(f'{stall}, after {self.loop_start_attempts} start(s) of the loop\'s nodes\n'
                                        f'{logs}') from stall
@@ -231,6 +229,12 @@ class WallGraph:
         for n in self.nodes:
             if n.process.poll() is not None:
                 raise RuntimeError(f'{n.label} exited with {n.process.returncode}:\n{self.graph.log_tail(n)}')
+
+    def log_tails(self, lines: int = 15) -> str:
+        """The last lines of every loop node's log: the nodes' own words on a stall (unmatched peers, a state waiting
+        for its command), for the error where the run is watched, since the log files may be gone with the work
+        directory (a CI run's tmp)."""
+        return '\n'.join(f'--- {n.label} (last lines) ---\n{self.graph.log_tail(n, lines)}' for n in self.nodes)
 
     def spin_until(self, predicate, timeout: float, what: str) -> None:
         deadline = time.monotonic() + timeout
