@@ -519,6 +519,7 @@ class StateTracker:
         self.hold_steps = hold_steps
         self.sensor2_hold_steps = sensor2_hold_steps
         self.measurement_gain = measurement_gain
+        self._grid_box = model.grid_box()       # fixed for the model's life; a new model gets a new tracker
         self.reset()
 
     def reset(self) -> None:
@@ -559,7 +560,7 @@ class StateTracker:
             measured = self.model.grid_.transform(r[list(SENSOR1)][None])[0]
             if self.coordinates is not None and self.virtual_steps == 0 and command is not None:
                 predicted = self.model.virtual_.step(self.coordinates, command)
-                box = self.model.grid_box()
+                box = self._grid_box
                 outside = self.model.measure_outside_grid and bool(np.any((measured < box[0]) | (measured > box[1])))
                 gain = 0.0 if lost[list(SENSOR1)].any() else 1.0 if outside else k1
                 measured = predicted + gain * (measured - predicted)
