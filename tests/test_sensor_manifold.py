@@ -529,20 +529,24 @@ def test_save_load_round_trip(model, tmp_path, robot):
     with np.load(path, allow_pickle=False) as data:               # saved before the span was learned: one step
         arrays = {k: data[k] for k in data.files}
     meta = json.loads(str(arrays['meta']))
-    del meta['rate_steps'], meta['measure_outside_grid']
+    del meta['rate_steps']
+    for name in SensorManifoldModel.TRACKER_SETTINGS:
+        del meta[name]
     np.savez(path, **{**arrays, 'meta': np.array(json.dumps(meta))})
-    assert SensorManifoldModel.load(path).rate_steps_ == 1
-    # how the tracker takes readings outside the grid travels with the model (files from before it: blended)
-    assert not SensorManifoldModel.load(path).measure_outside_grid
-    blended = copy.copy(model)
-    for measure in (False, True):
-        blended.measure_outside_grid = measure
-        blended.save(path)
-        assert SensorManifoldModel.load(path).measure_outside_grid is measure
-    meta['measure_outside_grid'] = 'yes'
-    np.savez(path, **{**arrays, 'meta': np.array(json.dumps(meta))})
-    with pytest.raises(ValueError, match='measure_outside_grid'):
-        SensorManifoldModel.load(path)
+    old = SensorManifoldModel.load(path)
+    assert old.rate_steps_ == 1
+    # how the tracker treats the grid's outside travels with the model (files from before a setting: blended)
+    assert SensorManifoldModel.TRACKER_SETTINGS == ('measure_outside_grid', 'measure_on_prediction_outside_grid')
+    for name in SensorManifoldModel.TRACKER_SETTINGS:
+        assert getattr(old, name) is False
+        tracked = copy.copy(model)
+        for measure in (False, True):
+            setattr(tracked, name, measure)
+            tracked.save(path)
+            assert getattr(SensorManifoldModel.load(path), name) is measure
+        np.savez(path, **{**arrays, 'meta': np.array(json.dumps({**meta, name: 'yes'}))})
+        with pytest.raises(ValueError, match=name):
+            SensorManifoldModel.load(path)
 
 
 def test_load_rejects_missing_corrupt_and_foreign_files(model, tmp_path):
@@ -729,6 +733,39 @@ def test_state_tracker_takes_readings_outside_the_grid_as_they_are(noisy_model):
             tracker.update(start, None)
             _, c, _, _ = tracker.update(np.r_[reading, math.inf, math.inf], np.array([1.0, 1.0]))
             assert np.allclose(c, measured) == (outside and measure), (target, measure, c, measured)
+
+
+def test_state_tracker_does_not_use_a_prediction_outside_the_grid(noisy_model):
+    """A one-step prediction that lands outside the grid comes from a field extrapolated past its data: with
+    measure_on_prediction_outside_grid the tracker takes the measurement alone there, a lost reading's bridged value
+    included; without it the prediction is blended in as anywhere (a lost reading: the prediction alone). A
+    prediction inside the grid is used either way."""
+    model = noisy_model
+    assert model.sensor1_gain_ < 1 and model.measure_on_prediction_outside_grid        # the default
+    box = model.grid_box()
+    centre = np.array([(model.grid_rows - 1) / 2, (model.grid_cols - 1) / 2])
+    starts = {True: np.array([-1.5, centre[1]]), False: centre}         # beyond the grid's first row / inside
+    new = model.grid_.inverse_transform((centre + 0.5)[None])[0]
+    for prediction_outside, start in starts.items():
+        start_reading = model.grid_.inverse_transform(start[None])[0]
+        for lost in (False, True):
+            # a lost first sensor is bridged with its last value, the start's; the other two read the new place
+            read = np.r_[start_reading[0], new[1:]] if lost else new
+            measured = model.grid_.transform(read[None])[0]
+            for measure in (True, False):
+                m = copy.copy(model)
+                m.measure_on_prediction_outside_grid = measure
+                tracker = StateTracker(m)
+                tracker.update(np.r_[start_reading, math.inf, math.inf], None)
+                previous = tracker.coordinates.copy()
+                assert bool(np.any((previous < box[0]) | (previous > box[1]))) == prediction_outside
+                readings = np.r_[np.nan if lost else new[0], new[1:], math.inf, math.inf]
+                _, c, _, _ = tracker.update(readings, np.zeros(2))         # standing still: predicted = previous
+                if prediction_outside and measure:
+                    expected = measured
+                else:
+                    expected = previous if lost else previous + m.sensor1_gain_ * (measured - previous)
+                assert np.allclose(c, expected), (prediction_outside, lost, measure, c, expected)
 
 
 def test_state_tracker_bridges_lost_readings_then_gives_up(model, robot):

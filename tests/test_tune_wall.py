@@ -1,5 +1,7 @@
 """How the wall tuning script ranks settings (pure logic; its runs are in results/tune_wall_*.json)."""
-from mm_bringup.tune_wall import summarize
+import pytest
+
+from mm_bringup.tune_wall import main, summarize
 
 
 def row(controller, noisy, success, over_2x):
@@ -29,3 +31,12 @@ def test_settings_that_ran_on_different_seeds_are_ranked_on_the_cells_they_share
     assert (first['cells'], first['mean_success'], first['compared_cells'], first['compared_mean_success']) == (
         3, 0.667, 2, 1.0)
     assert summarize(shared + other)[0]['compared_cells'] == 2
+
+
+def test_settings_judged_on_one_model_may_only_be_the_trackers(capsys):
+    """--learn-model sets each --model set on the model learned with it: a setting the fit reads would then be
+    reported without having been learned with, so only tracker settings are accepted there."""
+    with pytest.raises(SystemExit):
+        main(['--seeds', '100', '--learn-model', '{}', '--model', '{"measure_outside_grid": false}',
+              '{"heldout_bound": 1.0}'])
+    assert "may name only tracker settings, not ['heldout_bound']" in capsys.readouterr().err

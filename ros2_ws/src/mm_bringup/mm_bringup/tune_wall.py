@@ -5,8 +5,9 @@ The learning loop is the graph's: the agent explores `exploration_steps`, the le
 takes the model through its message; a model that is not ready, or that failed one of the agent's rehearsals, sends the
 agent exploring `exploration_steps // 4` more, and the learner refits after as many more samples (the nodes' rule),
 until the model is ready and rehearsed or the cap is hit (mm_bringup.wall_experiment.learn, with the hyperparameters
-under test: explorer settings, `--rehearsals`, `--model`, `--controller`). Samples are counted as the nodes count them
-(every step, extra exploration and rehearsals included); `explored` counts the exploration steps among them.
+under test: explorer settings, `--rehearsals`, `--model`, `--controller`; with `--learn-controller` or `--learn-model`
+every setting is judged on the one model learned with those). Samples are counted as the nodes count them (every step,
+extra exploration and rehearsals included); `explored` counts the exploration steps among them.
 
 Seeds: exploration seeds 100-119 and task seed 1103 only; the benchmark (mm_bringup/bench/wall_task.py) uses
 exploration seeds 1000+ and task seeds 5000+, never these. Layouts and robots are the benchmark's (the layout files
@@ -51,7 +52,7 @@ from mm_bringup.wall_experiment import (PAPER_START, explore, learn, oracle_path
                                         sensor2_goal_reading, success)
 from mm_common.wheeled_sensors import SENSOR1
 from mm_manifold.dimension import LocalPCADimension
-from mm_manifold.sensor_manifold import group_in_range
+from mm_manifold.sensor_manifold import SensorManifoldModel, group_in_range
 from mm_sim.wheeled_model import WheeledRobot
 
 TUNING_SEEDS = tuple(range(100, 120))
@@ -93,18 +94,25 @@ def evaluate(robot: WheeledRobot, dt: float, model, tasks: int, tolerance: float
 
 def run_cell(layout, robot_name, seed, steps, tasks, tolerance, max_samples, model_params=None,
              explorer_params=None, rehearsals=None, noisy: bool = False, controller_params=None,
-             learn_controller_params=None) -> Dict:
+             learn_controller_params=None, learn_model_params=None) -> Dict:
     """Learn as the graph does and run the tasks (`noisy`: the benchmark's reading noise and dropout, goals and
     success judged on noise-free readings as there). `learn_controller_params`: the controller settings the learning
-    (its rehearsals) runs with, when not those under test: every setting is then judged on the same model."""
+    (its rehearsals) runs with, when not those under test: every setting is then judged on the same model.
+    `learn_model_params` likewise for the model: it learns with these, and `model_params` (tracker settings only,
+    SensorManifoldModel.TRACKER_SETTINGS) are set on the fitted model for the tasks."""
     t0 = time.monotonic()
     noise = dict(noise_range_fraction=NOISE['std_fraction_of_max_range'], dropout=NOISE['dropout'],
                  random_state=seed) if noisy else {}
     robot, dt, start = robot_variant(layout, robot_name, **noise)
     learning_controller = controller_params if learn_controller_params is None else learn_controller_params
-    learned = learn(robot, steps, dt, seed, start, max_samples=max_samples, model_params=model_params,
+    learning_model = model_params if learn_model_params is None else learn_model_params
+    learned = learn(robot, steps, dt, seed, start, max_samples=max_samples, model_params=learning_model,
                     explorer_params=explorer_params, rehearsals=rehearsals, controller_params=learning_controller)
     model, samples = learned.fitted, learned.samples
+    if learn_model_params is not None and model is not None:
+        model = copy.copy(model)
+        for name, value in (model_params or {}).items():
+            setattr(model, name, value)
     # Tasks are run with the last model fitted even when it was not announced (as if it had been): success_if_used
     # against the held-out error is what the readiness bound is chosen from; `success` counts a model the agent did
     # not announce as 0 (the graph never acts on it).
@@ -267,6 +275,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument('--learn-controller', type=json.loads, default=None, metavar='JSON',
                         help='SwitchingController settings the learning (its rehearsals) uses for every --controller '
                         'set: each set is judged on the same model (default: each learns with its own)')
+    parser.add_argument('--learn-model', type=json.loads, default=None, metavar='JSON',
+                        help='SensorManifoldModel settings the learning uses for every --model set, which may then '
+                        'name only tracker settings (' + ', '.join(SensorManifoldModel.TRACKER_SETTINGS) + '), set '
+                        'on the fitted model: each set is judged on the same model (default: each learns with its own)')
     parser.add_argument('--rehearsals', nargs='+', type=int, default=[None],
                         help="WallAgent rehearsals to compare (default: the agent's own default)")
     parser.add_argument('--noisy', action='store_true',
@@ -296,6 +308,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     bad = [s for s in args.seeds if s not in TUNING_SEEDS]
     if bad:
         parser.error(f'seeds {bad} are not tuning seeds ({TUNING_SEEDS[0]}-{TUNING_SEEDS[-1]})')
+    fit_settings = {name for params in args.model for name in params} - set(SensorManifoldModel.TRACKER_SETTINGS)
+    if args.learn_model is not None and fit_settings:
+        parser.error(f'--learn-model: --model may name only tracker settings, not {sorted(fit_settings)}')
     rows = []
     if args.dimension:
         for layout in args.layouts:
@@ -326,9 +341,11 @@ def main(argv: Optional[List[str]] = None) -> int:
                                                args.max_samples, model_params=model_params, explorer_params=params,
                                                rehearsals=rehearsals, noisy=args.noisy,
                                                controller_params=controller_params,
-                                               learn_controller_params=args.learn_controller)
+                                               learn_controller_params=args.learn_controller,
+                                               learn_model_params=args.learn_model)
                                 row.update(explorer=params, rehearsals=rehearsals, model=model_params,
-                                           controller=controller_params, learn_controller=args.learn_controller)
+                                           controller=controller_params, learn_controller=args.learn_controller,
+                                           learn_model=args.learn_model)
                                 print(json.dumps(row), flush=True)
                                 rows.append(row)
     return _write(args, rows, summarize(rows, args.rule), RULES[args.rule])

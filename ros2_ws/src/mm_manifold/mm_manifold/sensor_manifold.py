@@ -116,17 +116,24 @@ class SensorManifoldModel:
     the readings as they are), rate_steps (consecutive steps each sensor-1 rate spans in the Jacobian fit,
     _sensor1_rates; None: from the reading noise, 1 on clean readings), measure_outside_grid (the state tracker takes
     a sensor-1 reading whose grid coordinates fall outside the grid as it is, without blending in the learned
-    prediction: StateTracker; False: blended like any other).
+    prediction: StateTracker; False: blended like any other), measure_on_prediction_outside_grid (nor does it use a
+    one-step prediction that lands outside the grid: the measurement is taken alone, a lost reading's last value
+    included; False: used like any other). The last two are read by the tracker only (TRACKER_SETTINGS), not by fit.
     Learned: dimension_, grid_, field1_ (grid coords), regions1_, field2_ (sensor-2 readings), sensor1_gain_ (the
     state tracker's measurement gain for sensor 1: measurement_gain), rate_steps_ (the steps a sensor-1 rate spanned),
     sensor2_noise_ (std
     of the sensor-2 reading noise, estimated from consecutive samples), virtual_, n_samples_, n_excursions_,
     heldout_sensor2_error_ [m], heldout_reentry_error_ [grid units], heldout_count_, heldout_limit_ [m]."""
 
+    # Hyperparameters only the StateTracker reads: they change how a fitted model is tracked, not the fit, so a
+    # tuning run may set them on a model fitted without them (mm_bringup.tune_wall --learn-model).
+    TRACKER_SETTINGS = ('measure_outside_grid', 'measure_on_prediction_outside_grid')
+
     def __init__(self, dt: float, grid_rows: int = 10, grid_cols: int = 10, jacobian_degree: int = 2,
                  virtual_prior_weight: float = 1.0, route_travel_weight: float = 5e-3, validation_folds: int = 3,
                  heldout_bound: float = 0.5, learn_measurement_gain: bool = True, rate_steps: Optional[int] = None,
-                 measure_outside_grid: bool = True, random_state: Optional[int] = 0):
+                 measure_outside_grid: bool = True, measure_on_prediction_outside_grid: bool = True,
+                 random_state: Optional[int] = 0):
         if validation_folds < 2 or not heldout_bound > 0:
             raise ValueError('validation_folds >= 2 and heldout_bound > 0 are required')
         if rate_steps is not None and not _valid_rate_steps(rate_steps):
@@ -137,6 +144,7 @@ class SensorManifoldModel:
         self.heldout_bound = heldout_bound
         self.learn_measurement_gain = learn_measurement_gain
         self.measure_outside_grid = bool(measure_outside_grid)
+        self.measure_on_prediction_outside_grid = bool(measure_on_prediction_outside_grid)
         self.dt = dt
         self.grid_rows, self.grid_cols = grid_rows, grid_cols
         self.jacobian_degree = jacobian_degree
@@ -300,6 +308,7 @@ class SensorManifoldModel:
                 'route_travel_weight': self.route_travel_weight, 'dimension': int(self.dimension_),
                 'sensor2_noise': [float(v) for v in self.sensor2_noise_], 'sensor1_gain': self.sensor1_gain_,
                 'rate_steps': self.rate_steps_, 'measure_outside_grid': self.measure_outside_grid,
+                'measure_on_prediction_outside_grid': self.measure_on_prediction_outside_grid,
                 'grid_residual': self.grid_.residual_, 'n_samples': self.n_samples_,
                 'n_excursions': self.n_excursions_,
                 'reentry_rms_before': self.virtual_.reentry_rms_before_,
@@ -416,10 +425,11 @@ class SensorManifoldModel:
         if not _valid_rate_steps(rate_steps):
             raise ValueError(f'rate_steps {rate_steps!r} must be an integer in [1, {MAX_RATE_STEPS}]')
         model.rate_steps_ = rate_steps
-        measure = meta.get('measure_outside_grid', False)   # files saved before it existed: blended everywhere
-        if not isinstance(measure, bool):
-            raise ValueError(f'measure_outside_grid {measure!r} must be true or false')
-        model.measure_outside_grid = measure
+        for name in SensorManifoldModel.TRACKER_SETTINGS:
+            measure = meta.get(name, False)     # files saved before the setting existed: blended everywhere
+            if not isinstance(measure, bool):
+                raise ValueError(f'{name} {measure!r} must be true or false')
+            setattr(model, name, measure)
         model.n_samples_, model.n_excursions_ = meta['n_samples'], meta['n_excursions']
         model.sensor2_box_ = arrays['sensor2_box']
         grid = ElasticGrid(rows, cols)
@@ -508,7 +518,10 @@ class StateTracker:
     not have gone back there since its start) is taken as it is when the model says so (measure_outside_grid): the
     prediction there comes from a field extrapolated past its data, and blended in, it pulled the estimate several
     grid units off within a few steps, so that the approach to the exit drove away from it (README, "Starts beyond
-    the explored range").
+    the explored range"). For the same reason a prediction that lands outside the grid is not used when the model says
+    so (measure_on_prediction_outside_grid): the measurement is taken alone, a lost reading's bridged value included
+    (far from the wall at speed, such predictions landed several grid sizes out while the readings' coordinates
+    stayed smooth; README, "Predictions beyond the grid").
     """
 
     def __init__(self, model: SensorManifoldModel, hold_steps: int = 3, sensor2_hold_steps: int = 20,
@@ -539,6 +552,10 @@ class StateTracker:
         self.last_valid = np.where(lost, self.last_valid, readings)
         return np.where(lost & (self.age > self.hold_steps), np.inf, self.last_valid)
 
+    def _outside_grid(self, coordinates: np.ndarray) -> bool:
+        box = self._grid_box
+        return bool(np.any((coordinates < box[0]) | (coordinates > box[1])))
+
     def _plausible_sensor2(self, reading: np.ndarray) -> bool:
         """A continued sensor-2 reading within the readings seen in exploration, widened by their span on each
         side. Farther out the polynomial field is extrapolating and can run away (to overflow) within the hold."""
@@ -560,9 +577,9 @@ class StateTracker:
             measured = self.model.grid_.transform(r[list(SENSOR1)][None])[0]
             if self.coordinates is not None and self.virtual_steps == 0 and command is not None:
                 predicted = self.model.virtual_.step(self.coordinates, command)
-                box = self._grid_box
-                outside = self.model.measure_outside_grid and bool(np.any((measured < box[0]) | (measured > box[1])))
-                gain = 0.0 if lost[list(SENSOR1)].any() else 1.0 if outside else k1
+                outside = self.model.measure_outside_grid and self._outside_grid(measured)
+                unfounded = self.model.measure_on_prediction_outside_grid and self._outside_grid(predicted)
+                gain = 1.0 if unfounded else 0.0 if lost[list(SENSOR1)].any() else 1.0 if outside else k1
                 measured = predicted + gain * (measured - predicted)
             self.coordinates = measured
             self.virtual_steps = 0
