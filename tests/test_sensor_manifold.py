@@ -11,13 +11,13 @@ import pytest
 from mm_bringup.wall_experiment import explore, layout_robot
 from mm_manifold.dimension import LocalPCADimension
 from mm_manifold.grid import ElasticGrid
-from mm_manifold.jacobian import PolynomialJacobianField, RegionJacobians
+from mm_manifold.jacobian import PolynomialJacobianField
 from mm_manifold.sample_assembly import Resent, Sample, SampleAssembler
 from mm_manifold.sample_log import SampleLog
 from mm_common.wheeled_sensors import SENSOR1, SENSOR2
-from mm_manifold.sensor_manifold import (REGION_BANDWIDTH, SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL,
-                                         SensorManifoldModel, StateTracker, excursions_without_sensor2,
-                                         find_excursions, group_in_range, measurement_gain, refit_problem)
+from mm_manifold.sensor_manifold import (SPACE_SENSOR1, SPACE_SENSOR2, SPACE_VIRTUAL, SensorManifoldModel,
+                                         StateTracker, excursions_without_sensor2, find_excursions,
+                                         group_in_range, measurement_gain, refit_problem)
 from mm_manifold.virtual_space import (Excursion, ExtrapolatedField, VirtualSensorSpace, integrate_batch,
                                        reentry_sensitivity)
 from mm_planner.exploration import UNDIRECTED
@@ -766,28 +766,6 @@ def test_state_tracker_does_not_use_a_prediction_outside_the_grid(noisy_model):
                 else:
                     expected = previous if lost else previous + m.sensor1_gain_ * (measured - previous)
                 assert np.allclose(c, expected), (prediction_outside, lost, measure, c, expected)
-
-
-def test_region_jacobians_leave_out_rates_that_span_several_regions(noisy_log):
-    """With local_region_rates a sensor-1 rate whose chain of steps moved the coordinates farther than the regions'
-    kernel bandwidth (a fast turn over a multi-step rate) does not enter the region Jacobians; the global field
-    still fits every rate."""
-    log = noisy_log
-    local, every = (SensorManifoldModel(DT, local_region_rates=on).fit(log.readings, log.commands, log.continuous)
-                    for on in (True, False))
-    assert every.rate_steps_ == local.rate_steps_ >= 2
-    np.testing.assert_array_equal(local.field1_.theta_, every.field1_.theta_)
-    C0, U0, rates = local._sensor1_rates(log.readings, log.commands, log.continuous,
-                                         group_in_range(log.readings, SENSOR1))
-    travel = np.linalg.norm(rates, axis=1) * local.rate_steps_ * DT
-    near = travel <= REGION_BANDWIDTH
-    assert 0 < (~near).sum() < 0.2 * len(near)                    # this exploration has such rates, a few
-    anchors = local.regions1_.anchors_
-    expected = RegionJacobians(bandwidth=REGION_BANDWIDTH).fit(C0[near], U0[near], rates[near], anchors)
-    np.testing.assert_array_equal(local.regions1_.jacobians_, expected.jacobians_)
-    everything = RegionJacobians(bandwidth=REGION_BANDWIDTH).fit(C0, U0, rates, anchors)
-    np.testing.assert_array_equal(every.regions1_.jacobians_, everything.jacobians_)
-    assert not np.allclose(local.regions1_.jacobians_, everything.jacobians_, equal_nan=True)
 
 
 def test_state_tracker_bridges_lost_readings_then_gives_up(model, robot):

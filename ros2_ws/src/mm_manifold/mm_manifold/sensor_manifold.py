@@ -106,7 +106,6 @@ def excursions_without_sensor2(R: np.ndarray, U: np.ndarray, continuous: np.ndar
 
 
 GRID_DIMENSION = 2        # the elastic grid's dimension (grid_rows x grid_cols)
-REGION_BANDWIDTH = 0.8    # the sensor-1 region Jacobians' kernel bandwidth [grid units]
 
 
 class SensorManifoldModel:
@@ -120,9 +119,6 @@ class SensorManifoldModel:
     prediction: StateTracker; False: blended like any other), measure_on_prediction_outside_grid (nor does it use a
     one-step prediction that lands outside the grid: the measurement is taken alone, a lost reading's last value
     included; False: used like any other). The last two are read by the tracker only (TRACKER_SETTINGS), not by fit.
-    local_region_rates: a sensor-1 rate whose chain of steps moved the grid coordinates farther than the regions'
-    kernel bandwidth is left out of the region Jacobians (regions1_; the global field keeps it): it spans several
-    regions, and where a region has few other samples such rates decided its Jacobian (False: every rate).
     Learned: dimension_, grid_, field1_ (grid coords), regions1_, field2_ (sensor-2 readings), sensor1_gain_ (the
     state tracker's measurement gain for sensor 1: measurement_gain), rate_steps_ (the steps a sensor-1 rate spanned),
     sensor2_noise_ (std
@@ -137,7 +133,7 @@ class SensorManifoldModel:
                  virtual_prior_weight: float = 1.0, route_travel_weight: float = 5e-3, validation_folds: int = 3,
                  heldout_bound: float = 0.5, learn_measurement_gain: bool = True, rate_steps: Optional[int] = None,
                  measure_outside_grid: bool = True, measure_on_prediction_outside_grid: bool = True,
-                 local_region_rates: bool = False, random_state: Optional[int] = 0):
+                 random_state: Optional[int] = 0):
         if validation_folds < 2 or not heldout_bound > 0:
             raise ValueError('validation_folds >= 2 and heldout_bound > 0 are required')
         if rate_steps is not None and not _valid_rate_steps(rate_steps):
@@ -149,7 +145,6 @@ class SensorManifoldModel:
         self.learn_measurement_gain = learn_measurement_gain
         self.measure_outside_grid = bool(measure_outside_grid)
         self.measure_on_prediction_outside_grid = bool(measure_on_prediction_outside_grid)
-        self.local_region_rates = bool(local_region_rates)
         self.dt = dt
         self.grid_rows, self.grid_cols = grid_rows, grid_cols
         self.jacobian_degree = jacobian_degree
@@ -180,14 +175,7 @@ class SensorManifoldModel:
         self.field1_ = PolynomialJacobianField(self.jacobian_degree).fit(C0, U0, rates1)
         node_coords = np.stack(np.meshgrid(np.arange(self.grid_rows), np.arange(self.grid_cols), indexing='ij'),
                                axis=-1).reshape(-1, 2).astype(float)
-        regions = RegionJacobians(bandwidth=REGION_BANDWIDTH)
-        if self.local_region_rates:
-            # A three-step rate of a fast turn moved the coordinates 1.7 grid units and fitted the turn's mean
-            # response to one region: where that region had only a slow approach besides, its Jacobian lost the
-            # forward response and sensor-1 control stood still there (README, "A lead for 11.2").
-            local = np.linalg.norm(rates1, axis=1) * self.rate_steps_ * self.dt <= REGION_BANDWIDTH
-            C0, U0, rates1 = C0[local], U0[local], rates1[local]
-        self.regions1_ = regions.fit(C0, U0, rates1, node_coords)
+        self.regions1_ = RegionJacobians(bandwidth=0.8).fit(C0, U0, rates1, node_coords)
 
         in2 = group_in_range(R, SENSOR2)
         pair2 = step & in2[:-1] & in2[1:]
