@@ -40,3 +40,12 @@ def test_settings_judged_on_one_model_may_only_be_the_trackers(capsys):
         main(['--seeds', '100', '--learn-model', '{}', '--model', '{"measure_outside_grid": false}',
               '{"heldout_bound": 1.0}'])
     assert "may name only tracker settings, not ['heldout_bound']" in capsys.readouterr().err
+    # set on the model as they are, so they are checked: a JSON object of true/false values
+    for model_sets, why in ((['{"measure_outside_grid": "yes"}'], 'must be true or false'),
+                            (['[1]'], 'must be JSON objects')):
+        with pytest.raises(SystemExit):
+            main(['--seeds', '100', '--learn-model', '{}', '--model', *model_sets])
+        assert why in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(['--seeds', '100', '--learn-model', '[]', '--model', '{}'])
+    assert 'must be JSON objects' in capsys.readouterr().err

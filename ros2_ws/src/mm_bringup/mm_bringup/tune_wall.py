@@ -308,9 +308,15 @@ def main(argv: Optional[List[str]] = None) -> int:
     bad = [s for s in args.seeds if s not in TUNING_SEEDS]
     if bad:
         parser.error(f'seeds {bad} are not tuning seeds ({TUNING_SEEDS[0]}-{TUNING_SEEDS[-1]})')
-    fit_settings = {name for params in args.model for name in params} - set(SensorManifoldModel.TRACKER_SETTINGS)
-    if args.learn_model is not None and fit_settings:
-        parser.error(f'--learn-model: --model may name only tracker settings, not {sorted(fit_settings)}')
+    if args.learn_model is not None:
+        # The sets are put on the fitted model as they are (not through its constructor): check them here.
+        if not isinstance(args.learn_model, dict) or not all(isinstance(p, dict) for p in args.model):
+            parser.error('--learn-model and every --model set must be JSON objects')
+        fit_settings = {n for params in args.model for n in params} - set(SensorManifoldModel.TRACKER_SETTINGS)
+        if fit_settings:
+            parser.error(f'--learn-model: --model may name only tracker settings, not {sorted(fit_settings)}')
+        if not all(isinstance(v, bool) for params in args.model for v in params.values()):
+            parser.error('--learn-model: tracker settings in --model must be true or false')
     rows = []
     if args.dimension:
         for layout in args.layouts:
